@@ -1,0 +1,195 @@
+"""``cdpr_analyze``: tensions, natural frequencies, FRF and time histories for one config.
+
+    cdpr_analyze [--config PATH] [--method M [M ...]] [--elements N] [--json PATH]
+                 [--plot-dir DIR] [--f-min HZ] [--f-max HZ] [--n-points N]
+                 [--excitation-hz F [F ...]] [--duration S]
+
+Writes the JSON of SPEC section 6 (for the first method; every method under ``methods``) and
+PNG plots of the FRF (one line per method) and of the time histories. Errors end with one line
+naming the cause and exit status 1.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, Stopwatch, build_system,
+                                    damping_for, damping_warnings, equilibrium, frf_arrays, safe)
+from cdpr_dynamics.config import METHODS, ConfigError, Settings, load_settings
+from cdpr_dynamics.dynamics import natural_frequencies, tension_change, time_history
+
+
+def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration_s: float,
+                   progress=None) -> dict:
+    """The SPEC section 6 JSON document of one method at equilibrium ``eq``."""
+    watch = Stopwatch()
+    with watch('assembly'):
+        system = safe(build_system, settings, eq)
+    assembly = system.assembly
+    warnings = list(eq.tensions.reason and [eq.tensions.reason] or []) + list(assembly.warnings)
+    if not assembly.valid:
+        raise AnalysisError(f'method {assembly.method} fails for this scene: '
+                            + '; '.join(assembly.warnings))
+    with watch('frf'):
+        arrays = safe(frf_arrays, settings, system)
+    freqs = arrays['natural_frequencies_hz']
+    damping = safe(damping_for, settings, system)
+    warnings += damping_warnings(damping, freqs)
+    histories = []
+    if assembly.blocks is not None:
+        with watch('time_history'):
+            for f_exc in excitations_hz:
+                th = safe(time_history, system, settings.frf_force_n, f_exc, duration_s, damping,
+                          settings.dt_s, settings.newmark_alpha, settings.newmark_beta,
+                          progress=progress and progress(f'time history {f_exc:g} Hz'))
+                tension = eq.tensions.tension_n + tension_change(system, th.u)
+                min_tension = float(tension.min())
+                slack = min_tension <= 0.0
+                if slack:
+                    warnings.append(f'{f_exc:g} Hz time history: a cable would go slack '
+                                    f'(lowest tension {min_tension:.1f} N): the linear '
+                                    'response is not valid')
+                elif min_tension < settings.tension_min_n:
+                    warnings.append(f'{f_exc:g} Hz time history: tension drops to '
+                                    f'{min_tension:.1f} N, below tension.min_n')
+                histories.append({'excitation_hz': float(f_exc), 't_s': th.t_s.tolist(),
+                                  'u_m': th.u_m.tolist(), 'min_tension_n': min_tension,
+                                  'slack': bool(slack)})
+    else:
+        warnings.append(f'method {assembly.method} has no finite matrices: no time history')
+    amplitude = np.stack([arrays['amplitude_x_m'], arrays['amplitude_y_m'],
+                          arrays['amplitude_z_m']], axis=1)
+    phase = np.stack([arrays['phase_x_rad'], arrays['phase_y_rad'], arrays['phase_z_rad']],
+                     axis=1)
+    choice = {'method': assembly.method, 'elements_per_cable': assembly.elements_per_cable,
+              'reason': getattr(system, 'choice_reason', None)
+              or f'model.method = {settings.method} as configured'}
+    return {
+        'method': assembly.method,
+        'dofs': system.dofs,
+        'tensions_n': eq.tensions.tension_n.tolist(),
+        'cable_lengths_m': eq.geometry.length_m.tolist(),
+        'natural_frequencies_hz': freqs.tolist(),
+        'damping': {'mass_factor': damping.mass_factor,
+                    'stiffness_factor': damping.stiffness_factor,
+                    'modal_damping_ratios': damping.ratios(freqs).tolist()},
+        'frf': {'frequency_hz': arrays['frequency_hz'].tolist(),
+                'amplitude_m': amplitude.tolist(), 'phase_rad': phase.tolist()},
+        'time_history': histories,
+        'model_choice': choice,
+        'warnings': warnings,
+        'timings_s': watch.seconds,
+    }
+
+
+def _plot(documents: list[dict], plot_dir: Path) -> list[Path]:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for doc in documents:
+        f = np.asarray(doc['frf']['frequency_hz'])
+        with np.errstate(divide='ignore'):
+            ax.plot(f, np.log10(np.asarray(doc['frf']['amplitude_m'])[:, 2]),
+                    label=f"{doc['method']} ({doc['dofs']} DOFs)")
+    ax.set_xlabel('excitation frequency (Hz)')
+    ax.set_ylabel('log10 |A_z| (m)')
+    ax.set_title('Frequency response of the end-effector (Eq. 39)')
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    paths.append(plot_dir / 'frf.png')
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+    histories = [(doc['method'], h) for doc in documents for h in doc['time_history']]
+    if histories:
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for method, h in histories:
+            ax.plot(h['t_s'], 1e3 * np.asarray(h['u_m'])[:, 2],
+                    label=f"{method}, {h['excitation_hz']:g} Hz"
+                    + (' (a cable goes slack)' if h['slack'] else ''))
+        ax.set_xlabel('time (s)')
+        ax.set_ylabel('u_z (mm)')
+        ax.set_title('Time history of the end-effector (Newmark)')
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        paths.append(plot_dir / 'time_history.png')
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    return paths
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog='cdpr_analyze', description=__doc__.split('\n')[0])
+    parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
+    parser.add_argument('--method', nargs='+', choices=METHODS,
+                        help='cable model(s); the first fills the top level of the JSON')
+    parser.add_argument('--elements', type=int, help='elements per cable (fem, fem_sag)')
+    parser.add_argument('--json', type=Path, help='write the results to this JSON file')
+    parser.add_argument('--plot-dir', type=Path, help='write frf.png and time_history.png here')
+    parser.add_argument('--f-min', type=float, help='lowest FRF frequency (Hz)')
+    parser.add_argument('--f-max', type=float, help='highest FRF frequency (Hz)')
+    parser.add_argument('--n-points', type=int, help='FRF frequencies')
+    parser.add_argument('--excitation-hz', type=float, nargs='+', default=[5.0],
+                        help='harmonic excitation frequencies of the time histories (Hz)')
+    parser.add_argument('--duration', type=float, default=1.0, help='time history length (s)')
+    return parser.parse_args(argv)
+
+
+def run(args: argparse.Namespace, progress=None) -> dict:
+    """Load, solve and analyse as the arguments say; returns the JSON document."""
+    settings = load_settings(args.config)
+    overrides = {'f_min_hz': args.f_min, 'f_max_hz': args.f_max, 'n_points': args.n_points,
+                 'elements_per_cable': args.elements}
+    settings = settings.replace(**{k: v for k, v in overrides.items() if v is not None})
+    if args.duration <= 0 or any(not f > 0 for f in args.excitation_hz):
+        raise ConfigError('--duration and --excitation-hz must be positive')
+    watch = Stopwatch()
+    with watch('tensions'):
+        eq = equilibrium(settings)
+    documents = [analyze_method(settings.replace(method=m), eq, args.excitation_hz,
+                                args.duration, progress)
+                 for m in (args.method or [settings.method])]
+    result = dict(documents[0])
+    result['timings_s'] = {**watch.seconds, **result['timings_s']}
+    if len(documents) > 1:
+        result['methods'] = documents
+    return result
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    from tqdm import tqdm
+
+    def progress(label):
+        return lambda it: tqdm(it, desc=label, unit='step', leave=False, disable=None)
+    try:
+        result = run(args, progress)
+    except (ConfigError, AnalysisError) as exc:
+        print(f'cdpr_analyze: error: {exc}', file=sys.stderr)
+        return 1
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1))
+        print(f'wrote {args.json}')
+    if args.plot_dir:
+        for path in _plot(result.get('methods', [result]), args.plot_dir):
+            print(f'wrote {path}')
+    freqs = ', '.join(f'{f:.2f}' for f in result['natural_frequencies_hz'][:6])
+    print(f"{result['method']}: {result['dofs']} DOFs; tensions "
+          f"{np.round(result['tensions_n'], 1).tolist()} N; lowest modes {freqs} Hz")
+    for warning in result['warnings']:
+        print(f'warning: {warning}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

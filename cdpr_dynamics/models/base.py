@@ -1,0 +1,122 @@
+"""The one interface every cable model implements.
+
+A cable runs from its anchor (fixed) to its platform attachment. A model turns the cables'
+state (:class:`CableSet`) into a :class:`CableAssembly`: what the platform feels of each cable.
+
+* ``end_stiffness(lam)``: the cable's dynamic stiffness condensed onto its platform end,
+  ``S_i(lam) = K_ee - lam M_ee - (K_ei - lam M_ei)(K_ii - lam M_ii)^-1 (K_ie - lam M_ie)``,
+  shape (len(lam), n, 3, 3), for complex ``lam``. With Rayleigh damping C = dM M + dK K the
+  damped dynamic stiffness is ``(1 + i w dK) S(lam)`` with ``lam = (w^2 - i w dM)/(1 + i w dK)``,
+  so one function serves damped and undamped, static (lam = 0) and dynamic analyses.
+* ``blocks``: the cable's finite matrices as block-tridiagonal 3x3 blocks over its free nodes
+  (interior nodes from the anchor side, the platform end node last), for eigenvalues and time
+  history; ``None`` for a model without finite matrices (``dsm``).
+
+Models are registered by name in :mod:`cdpr_dynamics.models`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class CableSet:
+    """The cables at one state, stacked over cables (first axis n); SI units.
+
+    ``chord_m`` points from the platform attachment to the anchor (world frame);
+    ``tension_n`` is the tension at the platform end from the tension distribution.
+    """
+
+    chord_m: np.ndarray
+    tension_n: np.ndarray
+    ea_n: float
+    weight_per_length_n_per_m: float
+    gravity_m_s2: np.ndarray
+
+    @property
+    def n_cables(self) -> int:
+        return self.chord_m.shape[0]
+
+    @property
+    def length_m(self) -> np.ndarray:
+        return np.linalg.norm(self.chord_m, axis=1)
+
+    @property
+    def unit(self) -> np.ndarray:
+        return self.chord_m / self.length_m[:, None]
+
+    @property
+    def mass_per_length_kg_m(self) -> float:
+        g = float(np.linalg.norm(self.gravity_m_s2))
+        return self.weight_per_length_n_per_m / g if g > 0 else 0.0
+
+    def with_tension(self, tension_n) -> 'CableSet':
+        return CableSet(self.chord_m, np.asarray(tension_n, dtype=float), self.ea_n,
+                        self.weight_per_length_n_per_m, self.gravity_m_s2)
+
+    def reversed(self) -> 'CableSet':
+        """Each cable seen from its other end (anchor <-> attachment), same tension."""
+        return CableSet(-self.chord_m, self.tension_n, self.ea_n,
+                        self.weight_per_length_n_per_m, self.gravity_m_s2)
+
+
+class ChainBlocks(NamedTuple):
+    """Block-tridiagonal cable matrices over the free nodes of each cable.
+
+    ``k_diag``, ``m_diag``: (n, nodes, 3, 3); ``k_off``, ``m_off``: (n, nodes - 1, 3, 3), block
+    (k, k+1). Node ``nodes - 1`` is the platform end; the anchor node is fixed and left out.
+    """
+
+    k_diag: np.ndarray
+    k_off: np.ndarray
+    m_diag: np.ndarray
+    m_off: np.ndarray
+
+    @property
+    def nodes(self) -> int:
+        return self.k_diag.shape[1]
+
+
+@dataclass(frozen=True, eq=False)
+class CableAssembly:
+    """What one model gives for one state (see the module docstring)."""
+
+    method: str
+    elements_per_cable: int
+    end_stiffness: Callable[[np.ndarray], np.ndarray]
+    end_force_n: np.ndarray            # (n, 3) force of each cable on the platform
+    blocks: ChainBlocks | None
+    valid: bool = True
+    warnings: tuple[str, ...] = field(default=())
+
+    @property
+    def interior_dofs(self) -> int:
+        """Cable DOFs besides the platform's (all cables together)."""
+        if self.blocks is None:
+            return 0
+        n, nodes = self.blocks.k_diag.shape[:2]
+        return 3 * n * (nodes - 1)
+
+    def static_end_stiffness(self) -> np.ndarray:
+        """(n, 3, 3) real stiffness of each cable at its platform end (N/m)."""
+        return self.end_stiffness(np.zeros(1))[0].real
+
+
+def axial_transverse(unit: np.ndarray, axial: np.ndarray, transverse: np.ndarray) -> np.ndarray:
+    """3x3 tensors ``a u u^T + t (I - u u^T)`` for stacked unit vectors.
+
+    ``unit`` (n, 3); ``axial``, ``transverse`` broadcastable to (..., n): result (..., n, 3, 3).
+    """
+    uu = unit[:, :, None] * unit[:, None, :]
+    axial = np.asarray(axial)[..., None, None]
+    transverse = np.asarray(transverse)[..., None, None]
+    return axial * uu + transverse * (np.eye(3) - uu)
+
+
+def slack_warnings(tension_n: np.ndarray) -> tuple[str, ...]:
+    """Warnings for cables that carry no tension (T <= 0): straight models are invalid there."""
+    return tuple(f'cable {i} is slack (T = {t:.3g} N <= 0): its geometric stiffness is not '
+                 'positive' for i, t in enumerate(tension_n) if not t > 0.0)

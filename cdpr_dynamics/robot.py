@@ -1,0 +1,148 @@
+"""Robot geometry: cable vectors, lengths and the structure matrix (paper Eqs. 1-6).
+
+Frames follow REP-103: anchors ``a_i`` and the platform position ``p`` are in ``robot.frame_id``;
+attachments ``b_i`` are in the platform frame and rotate with it, ``r_i = R b_i``. The cable
+vector points from the platform attachment to the anchor,
+
+    l_i = a_i - (p + R b_i),    L_i = |l_i|,    u_i = l_i / L_i,
+
+so a cable pulls the platform with force ``T_i u_i`` and moment ``r_i x T_i u_i``. The wrench
+the cables must supply is ``W^T T = w`` with the 6 x n structure matrix (transpose of Eq. 5)
+
+    W^T = [[u_1 ... u_n], [r_1 x u_1 ... r_n x u_n]],    w = -(m g + f_e, tau_e).
+
+A point-mass platform (all ``b_i = 0``) has 3 DOFs (translation); a rigid platform has 6
+(translation, then small rotation about the centroid).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class GeometryError(ValueError):
+    """A pose the robot cannot take (attachment at an anchor, outside the frame, ...)."""
+
+
+def quaternion_to_matrix(q) -> np.ndarray:
+    """Rotation matrix of the unit quaternion ``(qx, qy, qz, qw)`` (normalised here)."""
+    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``[v]x`` of vectors ``v`` of shape (..., 3): (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Robot:
+    """A CDPR: n anchors (n, 3) m, attachments (n, 3) m in the platform frame, mass kg,
+    inertia (3, 3) kg m^2 about the centroid in the platform frame, gravity (3,) m/s^2."""
+
+    frame_id: str
+    anchors_m: np.ndarray
+    attachments_m: np.ndarray
+    mass_kg: float
+    inertia_kg_m2: np.ndarray
+    gravity_m_s2: np.ndarray
+
+    @property
+    def n_cables(self) -> int:
+        return self.anchors_m.shape[0]
+
+    @property
+    def point_mass(self) -> bool:
+        """True when every cable meets the centroid: 3 platform DOFs instead of 6."""
+        return not np.any(self.attachments_m)
+
+    @property
+    def platform_dofs(self) -> int:
+        return 3 if self.point_mass else 6
+
+    @property
+    def frame_bounds_m(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned box spanned by the anchors (the frame), lower and upper corner."""
+        return self.anchors_m.min(axis=0), self.anchors_m.max(axis=0)
+
+    def platform_mass_matrix(self, rotation: np.ndarray) -> np.ndarray:
+        """diag(m I, R I_P R^T) of the platform DOFs (Eq. 7, inertia in the world frame)."""
+        n = self.platform_dofs
+        mass = np.zeros((n, n))
+        mass[:3, :3] = self.mass_kg * np.eye(3)
+        if n == 6:
+            mass[3:, 3:] = rotation @ self.inertia_kg_m2 @ rotation.T
+        return mass
+
+
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """Cable geometry at one pose; every array is stacked over cables (first axis n)."""
+
+    position_m: np.ndarray        # (3,) platform centroid
+    rotation: np.ndarray          # (3, 3) platform to world
+    lever_m: np.ndarray           # (n, 3) r_i = R b_i, world frame
+    chord_m: np.ndarray           # (n, 3) l_i, attachment -> anchor
+    length_m: np.ndarray          # (n,) L_i
+    unit: np.ndarray              # (n, 3) u_i
+    structure_matrix: np.ndarray  # (ndof, n) W^T: wrench per unit tension
+
+    @property
+    def n_cables(self) -> int:
+        return self.length_m.shape[0]
+
+    def attachment_map(self) -> np.ndarray:
+        """(n, 3, ndof): attachment displacement per platform DOF, G_i = [I, -[r_i]x]."""
+        ndof = self.structure_matrix.shape[0]
+        g = np.zeros((self.n_cables, 3, ndof))
+        g[:, :, :3] = np.eye(3)
+        if ndof == 6:
+            g[:, :, 3:] = -skew(self.lever_m)
+        return g
+
+
+def geometry(robot: Robot, position_m, rotation=None, *, check_frame: bool = True) -> Geometry:
+    """Cable vectors, lengths, unit vectors and structure matrix at pose (p, R).
+
+    Raises :class:`GeometryError` when the position is not finite, lies outside the frame
+    (with ``check_frame``) or puts an attachment on its anchor.
+    """
+    p = np.asarray(position_m, dtype=float).reshape(3)
+    rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(rot))):
+        raise GeometryError('pose is not finite')
+    if check_frame:
+        lo, hi = robot.frame_bounds_m
+        outside = (p < lo - 1e-9) | (p > hi + 1e-9)
+        if np.any(outside & (hi - lo > 0)):
+            raise GeometryError(f'position {np.round(p, 4).tolist()} m is outside the frame '
+                                f'{lo.tolist()} .. {hi.tolist()} m')
+    lever = robot.attachments_m @ rot.T
+    chord = robot.anchors_m - (p + lever)
+    length = np.linalg.norm(chord, axis=1)
+    if np.any(length < 1e-6):
+        i = int(np.argmin(length))
+        raise GeometryError(f'cable {i} has zero length: attachment on its anchor')
+    unit = chord / length[:, None]
+    wt = np.zeros((robot.platform_dofs, robot.n_cables))
+    wt[:3] = unit.T
+    if robot.platform_dofs == 6:
+        wt[3:] = np.cross(lever, unit).T
+    return Geometry(p, rot, lever, chord, length, unit, wt)
+
+
+def required_wrench(robot: Robot, external_force_n=(0, 0, 0), external_moment_nm=(0, 0, 0)):
+    """The wrench the cables must supply, w = -(m g + f_e, tau_e) (Eq. 9), sized to the DOFs."""
+    w = np.concatenate([-(robot.mass_kg * robot.gravity_m_s2 + np.asarray(external_force_n)),
+                        -np.asarray(external_moment_nm, dtype=float)])
+    return w[:robot.platform_dofs]

@@ -1,0 +1,329 @@
+"""Cable tension distribution (paper Eqs. 10-12): a small QP, solved with proxsuite.
+
+The tensions T (n,) in N are the solution of
+
+    minimise    1/2 T^T C T + c^T T                    (Eq. 10)
+    subject to  T_min <= T_i <= T_max,  i = 1..n        (Eq. 11)
+                W^T T = w                                (Eq. 12)
+
+with the structure matrix W^T (ndof, n) of :func:`cdpr_dynamics.robot.geometry` (wrench per unit
+tension: N/N in the force rows, N m/N in the moment rows), the wrench w (ndof,) the cables must
+supply (:func:`cdpr_dynamics.robot.required_wrench`: N, then N m), ndof = 3 for a point-mass
+platform and 6 for a rigid one. The default weights C = I, c = 0 give the tensions of least
+2-norm. The optimality (KKT) conditions are
+
+    C T + c - W lambda - mu_low + mu_up = 0,   mu_low, mu_up >= 0,
+    mu_low_i (T_i - T_min) = 0,   mu_up_i (T_max - T_i) = 0.
+
+:class:`TensionSolver` keeps one ``proxsuite.proxqp.dense.QP`` with native box constraints for
+(11): it is set up once, then only W^T and w are updated (``qp.update``) and each solve is
+warm-started from the previous solution, so a live node pays a few tens of microseconds per pose.
+
+Infeasibility is never taken on the solver's word alone. Before the QP a cheap necessary test
+compares each wrench component with the range the box can produce (below); after it the returned
+T is checked against (11) and (12) within ``tolerance_n``. When the QP fails, a second, always
+feasible QP finds the tensions in the box that come closest to w,
+
+    minimise 1/2 |W^T T - w|^2  subject to  T_min <= T_i <= T_max,
+
+whose residual says whether w is out of reach (status ``'infeasible'``, with these closest
+tensions as the best effort) or the QP merely ran out of iterations (``'max_iter'``). This costs a
+bounded ~0.5-3 ms, only on failure.
+
+Range of one wrench component j over the box (exact per row, necessary for the whole wrench):
+
+    |w_j - (T_min + T_max)/2 sum_i W^T_ji| <= (T_max - T_min)/2 sum_i |W^T_ji|.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import proxsuite
+
+_proxqp = proxsuite.proxqp
+
+#: proxsuite outcomes that are not a converged answer, as TensionResult.status strings.
+_STATUS = {
+    _proxqp.PROXQP_SOLVED: 'solved',
+    _proxqp.PROXQP_PRIMAL_INFEASIBLE: 'infeasible',
+    _proxqp.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: 'infeasible',
+    _proxqp.PROXQP_MAX_ITER_REACHED: 'max_iter',
+    _proxqp.PROXQP_DUAL_INFEASIBLE: 'dual_infeasible',
+    _proxqp.PROXQP_NOT_RUN: 'not_run',
+}
+
+
+@dataclass(frozen=True)
+class TensionResult:
+    """Outcome of one tension distribution.
+
+    ``tension_n`` (n,) N: the optimal tensions when ``feasible``; after a failed solve the box
+    tensions closest to the wrench (best effort, never outside [T_min, T_max]), or NaN for
+    inputs that are not finite. ``status``: ``'solved'``, ``'infeasible'``, ``'max_iter'``,
+    ``'not_finite'`` (or a rarer proxsuite outcome: ``'dual_infeasible'``, ``'not_run'``).
+    ``feasible``: status ``'solved'`` and bounds and ``W^T T = w`` hold within ``tolerance_n``.
+    ``residual_n``: max |W^T T - w| (N, N m). ``iterations``: proxsuite iterations of the main QP
+    (0 when it was not run). ``reason``: one readable line when not feasible, else ''.
+    ``solve_time_s``: wall time of :meth:`TensionSolver.solve`.
+    """
+
+    tension_n: np.ndarray
+    status: str
+    feasible: bool
+    residual_n: float
+    iterations: int
+    reason: str = ''
+    solve_time_s: float = 0.0
+    tolerance_n: float = 0.0
+
+
+def _fmt(v) -> str:
+    return np.array2string(np.asarray(v, dtype=float), precision=4, suppress_small=True,
+                           separator=', ', floatmode='maxprec', max_line_width=10_000)
+
+
+def _box(n_cables: int, t_min_n: float, t_max_n: float) -> tuple[float, float]:
+    if n_cables < 1:
+        raise ValueError(f'need at least one cable, got n_cables = {n_cables}')
+    lo, hi = float(t_min_n), float(t_max_n)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise ValueError(f'tension bounds must be finite, got [{lo}, {hi}] N')
+    if lo > hi:
+        raise ValueError(f'minimum tension {lo:g} N exceeds maximum tension {hi:g} N')
+    return lo, hi
+
+
+def _objective(n: int, weights, linear) -> tuple[np.ndarray, np.ndarray]:
+    """C (n, n) and c (n,) from the user's ``weights`` (None, (n,) diagonal or (n, n)) and
+    ``linear`` (None or (n,)); C must be symmetric positive semi-definite."""
+    if weights is None:
+        c_mat = np.eye(n)
+    else:
+        c_mat = np.asarray(weights, dtype=float)
+        if c_mat.shape == (n,):
+            c_mat = np.diag(c_mat)
+        if c_mat.shape != (n, n):
+            raise ValueError(f'weights must have shape ({n},) or ({n}, {n}), got '
+                             f'{np.shape(weights)}')
+    c_vec = np.zeros(n) if linear is None else np.asarray(linear, dtype=float).reshape(-1)
+    if c_vec.shape != (n,):
+        raise ValueError(f'linear must have shape ({n},), got {np.shape(linear)}')
+    if not (np.all(np.isfinite(c_mat)) and np.all(np.isfinite(c_vec))):
+        raise ValueError('weights and linear must be finite')
+    if not np.allclose(c_mat, c_mat.T, rtol=1e-12, atol=1e-12 * np.abs(c_mat).max()):
+        raise ValueError('weights C must be symmetric')
+    c_mat = 0.5 * (c_mat + c_mat.T)
+    if np.linalg.eigvalsh(c_mat).min() < -1e-10 * max(1.0, np.abs(c_mat).max()):
+        raise ValueError('weights C must be positive semi-definite')
+    return c_mat, c_vec
+
+
+class TensionSolver:
+    """Warm-started tension distribution for one robot (fixed n, ndof, bounds and weights).
+
+    ``TensionSolver(n_cables, ndof, t_min_n, t_max_n, weights=None, linear=None)`` sets up the
+    QP of Eqs. 10-12 (module docstring); :meth:`solve` takes W^T (ndof, n) and w (ndof,) at each
+    pose. ``weights``: C as an (n,) diagonal or an (n, n) symmetric PSD matrix (default I);
+    ``linear``: c (n,) in N (default 0). ``tolerance_n``: allowed violation of the bounds and of
+    W^T T = w for a feasible answer (default 1e-7 max(1, |T_min|, |T_max|) N, i.e. 0.1 mN for
+    T_max = 1000 N); proxsuite runs to 1/100 of it. ``max_iter``: cap on proxsuite's outer
+    iterations, which bounds the time spent on an infeasible wrench (proxsuite does not always
+    certify a mildly infeasible QP and would otherwise iterate for seconds).
+
+    Raises ValueError for invalid settings (T_min > T_max, non-finite bounds, bad weights);
+    :meth:`solve` raises only for wrong array shapes and reports every other problem in its
+    :class:`TensionResult`.
+    """
+
+    def __init__(self, n_cables: int, ndof: int, t_min_n: float, t_max_n: float,
+                 weights=None, linear=None, *, tolerance_n: float | None = None,
+                 warm_start: bool = True, max_iter: int = 100):
+        if ndof not in (3, 6):
+            raise ValueError(f'ndof must be 3 (point mass) or 6 (rigid platform), got {ndof}')
+        self.n_cables, self.ndof = int(n_cables), int(ndof)
+        self.t_min_n, self.t_max_n = _box(self.n_cables, t_min_n, t_max_n)
+        self.hessian, self.linear = _objective(self.n_cables, weights, linear)
+        scale = max(1.0, abs(self.t_min_n), abs(self.t_max_n))
+        self.tolerance_n = 1e-7 * scale if tolerance_n is None else float(tolerance_n)
+        if not self.tolerance_n > 0.0:
+            raise ValueError(f'tolerance_n must be positive, got {tolerance_n}')
+        self.warm_start = bool(warm_start)
+        self.max_iter = int(max_iter)
+        self._lower = np.full(self.n_cables, self.t_min_n)
+        self._upper = np.full(self.n_cables, self.t_max_n)
+        self._mid = np.full(self.n_cables, 0.5 * (self.t_min_n + self.t_max_n))
+        self._half = np.full(self.n_cables, 0.5 * (self.t_max_n - self.t_min_n))
+        self._qp = None  # set up on the first solve, dropped after a failure
+
+    def reset(self) -> None:
+        """Forget the previous solution: the next solve starts cold."""
+        self._qp = None
+
+    def _new_qp(self, structure_matrix: np.ndarray, wrench: np.ndarray):
+        qp = _proxqp.dense.QP(self.n_cables, self.ndof, 0, True)
+        settings = qp.settings
+        settings.eps_abs = 0.01 * self.tolerance_n
+        settings.eps_rel = 0.0
+        settings.max_iter = self.max_iter
+        settings.max_iter_in = self.max_iter
+        settings.verbose = False
+        qp.init(self.hessian, self.linear, structure_matrix, wrench, None, None, None,
+                self._lower, self._upper)
+        return qp
+
+    def solve(self, structure_matrix, wrench) -> TensionResult:
+        """Tensions (N) for structure matrix W^T (ndof, n) and wrench w (ndof,) in N and N m."""
+        start = time.perf_counter()
+        wt = np.asarray(structure_matrix, dtype=float)
+        w = np.asarray(wrench, dtype=float).reshape(-1)
+        if wt.shape != (self.ndof, self.n_cables) or w.shape != (self.ndof,):
+            raise ValueError(f'expected structure matrix ({self.ndof}, {self.n_cables}) and '
+                             f'wrench ({self.ndof},), got {wt.shape} and {w.shape}')
+        # Necessary condition, per wrench component: reachable range of W^T T over the box.
+        # NaN or inf anywhere in W^T or w makes the test fail too, so it is the finite check.
+        excess = np.abs(w - wt @ self._mid) - np.abs(wt) @ self._half
+        if not excess.max() <= self.tolerance_n:
+            if not (np.isfinite(wt).all() and np.isfinite(w).all()):
+                what = 'structure matrix' if not np.isfinite(wt).all() else 'wrench'
+                return TensionResult(np.full(self.n_cables, np.nan), 'not_finite', False,
+                                     np.nan, 0, f'{what} is not finite',
+                                     time.perf_counter() - start, self.tolerance_n)
+            return self._failed(wt, w, 'infeasible', 0, start, self._row_reason(wt, w, excess))
+
+        qp = self._qp
+        if qp is None:
+            qp = self._new_qp(wt, w)
+            qp.settings.initial_guess = _proxqp.EQUALITY_CONSTRAINED_INITIAL_GUESS
+        else:
+            qp.update(A=wt, b=w)
+        qp.solve()
+        info = qp.results.info
+        iterations = int(info.iter)
+        status = _STATUS.get(info.status, str(info.status))
+        x = qp.results.x
+        if status == 'solved':
+            bound_violation = np.abs(x - self._mid).max() - self._half[0]
+            tension = np.clip(x, self.t_min_n, self.t_max_n) if bound_violation > 0.0 else x
+            residual = float(np.abs(wt @ tension - w).max())
+            if bound_violation <= self.tolerance_n and residual <= self.tolerance_n:
+                if self.warm_start:
+                    qp.settings.initial_guess = _proxqp.WARM_START_WITH_PREVIOUS_RESULT
+                    self._qp = qp
+                return TensionResult(tension, 'solved', True, residual, iterations, '',
+                                     time.perf_counter() - start, self.tolerance_n)
+            status = 'infeasible'
+        return self._failed(wt, w, status, iterations, start)
+
+    def _failed(self, wt, w, status, iterations, start, reason='') -> TensionResult:
+        """Result of a failed solve: closest tensions in the box, and the reason in one line."""
+        self._qp = None  # the next solve starts cold: a failed iterate is a poor warm start
+        tension = closest_tensions(wt, w, self.t_min_n, self.t_max_n, self.tolerance_n)
+        residual = float(np.abs(wt @ tension - w).max())
+        if not reason:
+            if residual > self.tolerance_n:
+                status = 'infeasible'
+                reason = self._residual_reason(wt, w, residual)
+            elif status == 'infeasible':  # the solver's 'infeasible' was not confirmed
+                status = 'max_iter'
+                reason = (f'tension QP failed although the wrench {_fmt(w)} is reachable '
+                          f'(closest tensions leave {residual:.3g})')
+            else:
+                reason = (f'tension QP stopped ({status}) after {iterations} iterations; the '
+                          f'wrench {_fmt(w)} is reachable, returned tensions are feasible but '
+                          f'not optimal')
+        return TensionResult(tension, status, False, residual, iterations, reason,
+                             time.perf_counter() - start, self.tolerance_n)
+
+    def _units(self) -> str:
+        return 'N' if self.ndof == 3 else 'N, N m'
+
+    def _bounds(self) -> str:
+        return f'tensions in [{self.t_min_n:g}, {self.t_max_n:g}] N'
+
+    def _row_reason(self, wt, w, excess) -> str:
+        j = int(np.argmax(excess))
+        centre = wt[j] @ self._mid
+        half = np.abs(wt[j]) @ self._half
+        axis = ('force x', 'force y', 'force z', 'moment x', 'moment y', 'moment z')[j]
+        return (f'wrench {_fmt(w)} {self._units()} outside the feasible set for {self._bounds()}: '
+                f'{axis} {w[j]:.4g} is outside the reachable [{centre - half:.4g}, '
+                f'{centre + half:.4g}]')
+
+    def _residual_reason(self, wt, w, residual) -> str:
+        text = (f'wrench {_fmt(w)} {self._units()} outside the feasible set for '
+                f'{self._bounds()} (closest tensions miss it by {residual:.4g})')
+        u, sing, _ = np.linalg.svd(wt)
+        rank = int(np.sum(sing > 1e-9 * max(1.0, sing[0])))
+        if rank < self.ndof:
+            text += (f'; the structure matrix has rank {rank} < {self.ndof}: the cables cannot '
+                     f'act along {_fmt(u[:, rank])}')
+        return text
+
+
+def closest_tensions(structure_matrix, wrench, t_min_n, t_max_n, tolerance_n=1e-4) -> np.ndarray:
+    """Tensions (n,) N in [T_min, T_max] whose wrench is closest to w (always exists):
+
+        minimise 1/2 |W^T T - w|^2 + eps/2 |T - T_mid|^2  subject to  T_min <= T_i <= T_max,
+
+    with a tiny eps (1e-12 of the Hessian's scale) that picks one answer when W^T is wide.
+    Equal to the tension distribution's feasible set test: the residual is ~0 exactly when
+    Eq. 12 has a solution in the box.
+    """
+    wt = np.asarray(structure_matrix, dtype=float)
+    w = np.asarray(wrench, dtype=float).reshape(-1)
+    n = wt.shape[1]
+    gram = wt.T @ wt
+    eps = 1e-12 * max(1.0, np.abs(gram).max())
+    mid = np.full(n, 0.5 * (t_min_n + t_max_n))
+    qp = _proxqp.dense.QP(n, 0, 0, True)
+    qp.settings.eps_abs = 1e-3 * tolerance_n
+    qp.settings.eps_rel = 0.0
+    qp.settings.max_iter = 1000
+    qp.init(gram + eps * np.eye(n), -(wt.T @ w) - eps * mid, None, None, None, None, None,
+            np.full(n, float(t_min_n)), np.full(n, float(t_max_n)))
+    qp.solve()
+    return np.clip(qp.results.x, t_min_n, t_max_n)
+
+
+def solve_tensions(structure_matrix, wrench, t_min_n, t_max_n, weights=None,
+                   linear=None, **options) -> TensionResult:
+    """One-shot tension distribution (Eqs. 10-12) with a fresh :class:`TensionSolver`.
+
+    W^T (ndof, n), w (ndof,) in N (and N m), bounds in N; see :class:`TensionSolver` for
+    ``weights``, ``linear`` and the keyword ``options``.
+    """
+    wt = np.asarray(structure_matrix, dtype=float)
+    if wt.ndim != 2:
+        raise ValueError(f'structure matrix must be 2-D (ndof, n), got shape {wt.shape}')
+    solver = TensionSolver(wt.shape[1], wt.shape[0], t_min_n, t_max_n, weights, linear,
+                           **options)
+    return solver.solve(wt, wrench)
+
+
+def solve_tensions_qpsolvers(structure_matrix, wrench, t_min_n, t_max_n, weights=None,
+                             linear=None, solver='proxqp') -> TensionResult:
+    """The same QP through ``qpsolvers`` (bounds as ``lb``/``ub``), for cross-checks only.
+
+    Uses ``qpsolvers.solve_problem`` with ``solver`` (must be in
+    ``qpsolvers.available_solvers``); no warm start, no failure diagnosis.
+    """
+    import qpsolvers
+
+    wt = np.asarray(structure_matrix, dtype=float)
+    w = np.asarray(wrench, dtype=float).reshape(-1)
+    n = wt.shape[1]
+    c_mat, c_vec = _objective(n, weights, linear)
+    lo, hi = _box(n, t_min_n, t_max_n)
+    problem = qpsolvers.Problem(c_mat, c_vec, None, None, wt, w, np.full(n, lo), np.full(n, hi))
+    start = time.perf_counter()
+    options = {'eps_abs': 1e-9 * max(1.0, abs(lo), abs(hi))} if solver == 'proxqp' else {}
+    solution = qpsolvers.solve_problem(problem, solver=solver, **options)
+    elapsed = time.perf_counter() - start
+    if not solution.found or solution.x is None:
+        return TensionResult(np.full(n, np.nan), 'infeasible', False, np.nan, 0,
+                             f'qpsolvers/{solver} found no solution', elapsed)
+    tension = np.asarray(solution.x)
+    residual = float(np.abs(wt @ tension - w).max())
+    return TensionResult(tension, 'solved', True, residual, 0, '', elapsed)
