@@ -24,6 +24,9 @@ from cdpr_dynamics.models.base import CableAssembly
 from cdpr_dynamics.robot import Geometry, Robot, skew
 
 
+DENSE_EIGEN_DOFS = 60   # above: sparse Lanczos (dense LAPACK threads thrash on a busy machine)
+
+
 class DynamicsError(RuntimeError):
     """A dynamic analysis that cannot give a trustworthy answer (the message says why)."""
 
@@ -189,9 +192,12 @@ def frequency_response(system: PlatformSystem, frequency_hz, force_n,
     z = system.dynamic_stiffness(2.0 * np.pi * f, damping)
     load = np.concatenate([np.asarray(force_n, dtype=float),
                            np.asarray(moment_nm, dtype=float)])[:system.platform_dofs]
-    # Hadamard ratio |det Z| / prod |columns| in [0, 1]: ~0 only where Z is singular
-    columns = np.linalg.norm(z, axis=1).prod(axis=1)
-    singular = ~(np.abs(np.linalg.det(z)) > 1e-13 * columns)
+    # singular: smallest singular value at round-off level of the stiffness and inertia scale
+    # (Z itself can vanish entirely at a repeated resonance, so its own norm is no scale)
+    sigma = np.linalg.svd(z, compute_uv=False)
+    scale = np.maximum(sigma[:, 0], np.abs(system.static_stiffness()).max()
+                       + (2 * np.pi * f) ** 2 * np.abs(system.platform_mass).max())
+    singular = ~(sigma[:, -1] > 1e-12 * scale)
     response = np.full((f.size, system.platform_dofs), np.inf + 0j)
     ok = ~singular
     if np.any(ok):
@@ -215,7 +221,7 @@ def natural_frequencies(system: PlatformSystem, count: int = 12) -> np.ndarray:
     k, m = system.matrices()
     n = k.shape[0]
     count = min(count, n)
-    if n <= 400:
+    if n <= DENSE_EIGEN_DOFS:
         values = scipy.linalg.eigh(k.toarray(), m.toarray(), eigvals_only=True,
                                    subset_by_index=[0, count - 1])
     else:
@@ -281,7 +287,7 @@ class Newmark:
 
 def _largest_eigenvalue(k, m) -> float:
     """Largest w^2 of K phi = w^2 M phi (M positive definite on the DOFs that carry stiffness)."""
-    if k.shape[0] <= 400:
+    if k.shape[0] <= DENSE_EIGEN_DOFS:
         return float(scipy.linalg.eigh(k.toarray(), m.toarray(), eigvals_only=True)[-1])
     return float(spla.eigsh(k, k=1, M=m, which='LA', return_eigenvectors=False)[0])
 

@@ -1,0 +1,193 @@
+"""``cdpr_bench``: how long each stage takes, as JSON (timings belong here, not in tests).
+
+    cdpr_bench [--config PATH] [--quick] [--json PATH]
+
+Stages: tension QP (cold, warm), model build per method and size, a 391-point FRF against a
+naive dense solve of (K + i w C - w^2 M) per frequency measured in the same run, a 1000-step
+Newmark time history, and the node's own work (pose update: tensions + model + factorisation;
+one wrench: Newmark sub-steps). ``--quick`` runs every stage with few repetitions (CI runs it
+to prove the command works; its numbers are not meant to be read).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cdpr_dynamics.analysis import AnalysisError, build_system, damping_for, equilibrium, \
+    new_tension_solver
+from cdpr_dynamics.config import ConfigError, Settings, load_settings
+from cdpr_dynamics.dynamics import DynamicsError, frequency_response, time_history
+from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.robot import geometry, required_wrench
+
+SIZES = [('spring', 1), ('fem', 1), ('fem', 4), ('fem', 16), ('fem', 64), ('catenary', 1),
+         ('catenary_exact', 1), ('fem_sag', 16), ('dsm', 1)]
+
+
+def timed(call, repeat: int) -> dict:
+    """Run ``call`` once to warm up, then ``repeat`` times: p50, p99 and min in seconds."""
+    call()
+    samples = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        call()
+        samples.append(time.perf_counter() - start)
+    samples = np.array(samples)
+    return {'p50_s': float(np.median(samples)), 'p99_s': float(np.percentile(samples, 99)),
+            'min_s': float(samples.min()), 'repeat': repeat}
+
+
+def bench_qp(settings: Settings, repeat: int) -> dict:
+    robot = settings.robot
+    wrench = required_wrench(robot, settings.external_force_n, settings.external_moment_nm)
+    poses = settings.initial_position_m + 0.01 * np.stack(
+        [np.cos(np.linspace(0, 6, 64)), np.sin(np.linspace(0, 6, 64)), np.zeros(64)], axis=1)
+    matrices = [geometry(robot, p).structure_matrix for p in poses]
+    solver = new_tension_solver(settings)
+    index = iter(range(10 ** 9))
+
+    def warm():
+        solver.solve(matrices[next(index) % len(matrices)], wrench)
+
+    def cold():
+        new_tension_solver(settings).solve(matrices[next(index) % len(matrices)], wrench)
+    return {'warm': timed(warm, 20 * repeat), 'cold': timed(cold, 2 * repeat)}
+
+
+def naive_frf(system, frequency_hz, force_n, damping) -> np.ndarray:
+    """Dense (K + i w C - w^2 M)^-1 F per frequency: the reference the condensation beats."""
+    k, m = (a.toarray() for a in system.matrices())
+    c = damping.mass_factor * m + damping.stiffness_factor * k
+    load = np.zeros(k.shape[0], dtype=complex)
+    load[:3] = force_n
+    out = np.empty((len(frequency_hz), 3), dtype=complex)
+    for i, f in enumerate(frequency_hz):
+        w = 2 * np.pi * f
+        out[i] = np.linalg.solve(k + 1j * w * c - w * w * m, load)[:3]
+    return out
+
+
+def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
+    eq = equilibrium(settings)
+    freqs = settings.frequencies_hz
+    rows = []
+    for method, n in SIZES:
+        try:
+            system = build_system(settings, eq, method, n)
+        except (AnalysisError, DynamicsError, ValueError) as exc:
+            rows.append({'method': method, 'elements_per_cable': n, 'error': str(exc)})
+            continue
+        damping = damping_for(settings, system)
+        row = {'method': method, 'elements_per_cable': n, 'dofs': system.dofs,
+               'build': timed(lambda: build_system(settings, eq, method, n), repeat),
+               'frf_391': timed(lambda: frequency_response(system, freqs, settings.frf_force_n,
+                                                           damping=damping), repeat)}
+        if system.assembly.blocks is not None:
+            steps = 100 if quick else 1000
+            row[f'time_history_{steps}_steps'] = timed(
+                lambda: time_history(system, settings.frf_force_n, 5.0, steps * settings.dt_s,
+                                     damping, settings.dt_s, settings.newmark_alpha,
+                                     settings.newmark_beta), max(1, repeat // 10))
+            if method == 'fem' and n in (16, 64):
+                fast = frequency_response(system, freqs, settings.frf_force_n,
+                                          damping=damping).response[:, :3]
+                naive = naive_frf(system, freqs, settings.frf_force_n, damping)
+                row['naive_dense_frf_391'] = timed(
+                    lambda: naive_frf(system, freqs, settings.frf_force_n, damping),
+                    1 if quick else 3)
+                row['naive_over_condensed'] = (row['naive_dense_frf_391']['p50_s']
+                                               / row['frf_391']['p50_s'])
+                row['naive_max_relative_difference'] = float(
+                    np.abs(naive - fast).max() / np.abs(naive).max())
+        rows.append(row)
+    return rows
+
+
+def bench_node_core(settings: Settings, repeat: int) -> list[dict]:
+    """The node's own work, without DDS: pose update and one wrench (one Newmark step)."""
+    rows = []
+    for method, n in [('spring', 1), ('catenary', 1), ('fem', 16), ('fem_sag', 16)]:
+        s = settings.replace(method=method, elements_per_cable=n)
+        try:
+            predictor = LivePredictor(s)
+        except (AnalysisError, DynamicsError, ValueError) as exc:
+            rows.append({'method': method, 'elements_per_cable': n, 'error': str(exc)})
+            continue
+        centre = s.initial_position_m
+        step = iter(range(10 ** 9))
+
+        def pose_update():
+            angle = 0.01 * next(step)
+            predictor.update_pose(centre + 0.02 * np.array([np.cos(angle), np.sin(angle), 0]))
+        clock = iter(range(1, 10 ** 9))
+
+        def wrench():
+            t = next(clock) * s.dt_s
+            predictor.advance(t, [0.0, 0.0, 1500.0 * np.sin(2 * np.pi * 5 * t)])
+        rows.append({'method': method, 'elements_per_cable': n, 'dofs': predictor.system.dofs,
+                     'pose_update': timed(pose_update, 5 * repeat),
+                     'wrench_one_step': timed(wrench, 50 * repeat)})
+    return rows
+
+
+def run(settings: Settings, quick: bool) -> dict:
+    repeat = 3 if quick else 30
+    return {'quick': quick, 'qp': bench_qp(settings, repeat),
+            'models': bench_models(settings, repeat, quick),
+            'node_core': bench_node_core(settings, repeat)}
+
+
+def summary(result: dict) -> str:
+    ms = 1e3
+    lines = [f"QP warm p50 {result['qp']['warm']['p50_s'] * 1e6:.1f} us, cold p50 "
+             f"{result['qp']['cold']['p50_s'] * 1e6:.1f} us"]
+    for row in result['models']:
+        if 'error' in row:
+            lines.append(f"{row['method']} n={row['elements_per_cable']}: {row['error']}")
+            continue
+        th = next((v for k, v in row.items() if k.startswith('time_history')), None)
+        text = (f"{row['method']:>15} n={row['elements_per_cable']:<3} dofs={row['dofs']:<5} "
+                f"build {row['build']['p50_s'] * ms:7.3f} ms  FRF391 "
+                f"{row['frf_391']['p50_s'] * ms:7.3f} ms")
+        if th:
+            text += f"  time history {th['p50_s'] * ms:8.1f} ms"
+        if 'naive_over_condensed' in row:
+            text += f"  (naive dense x{row['naive_over_condensed']:.0f})"
+        lines.append(text)
+    for row in result['node_core']:
+        if 'error' in row:
+            lines.append(f"node {row['method']}: {row['error']}")
+            continue
+        lines.append(f"node {row['method']:>8} n={row['elements_per_cable']:<3} pose update "
+                     f"p50/p99 {row['pose_update']['p50_s'] * ms:.3f}/"
+                     f"{row['pose_update']['p99_s'] * ms:.3f} ms, wrench p50/p99 "
+                     f"{row['wrench_one_step']['p50_s'] * ms:.3f}/"
+                     f"{row['wrench_one_step']['p99_s'] * ms:.3f} ms")
+    return '\n'.join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog='cdpr_bench', description=__doc__.split('\n')[0])
+    parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
+    parser.add_argument('--quick', action='store_true', help='few repetitions (CI smoke run)')
+    parser.add_argument('--json', type=Path, help='write the results to this JSON file')
+    args = parser.parse_args(argv)
+    try:
+        result = run(load_settings(args.config), args.quick)
+    except (ConfigError, AnalysisError) as exc:
+        print(f'cdpr_bench: error: {exc}', file=sys.stderr)
+        return 1
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1))
+    print(summary(result))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
