@@ -26,6 +26,8 @@ setup(
         'console_scripts': [
             'dynamics_node = cdpr_dynamics.node:main',
             'cdpr_analyze = cdpr_dynamics.cli.analyze:main',
+            'cdpr_bench = cdpr_dynamics.cli.bench:main',
+            'cdpr_record = cdpr_dynamics.cli.record:main',
         ],
     },
 )

@@ -1,0 +1,137 @@
+"""``cdpr_record``: record the node's topics (and FRF service events) to one MCAP file.
+
+    cdpr_record --output run.mcap [--topics pose wrench ...] [--force] [--ros-args ...]
+
+Records until SIGINT (Ctrl-C) or SIGTERM, then finishes the file (summary and index) and says
+where it is and how many messages it holds. Chunks are closed at least every second, so even a
+recorder killed outright leaves a file whose messages up to about a second before the kill can
+be read (``cdpr_dynamics.recording.read_messages(..., allow_incomplete=True)``).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+import time
+
+from msg_adapters.mcap_schema import service_event_topic
+
+# SPEC section 5: the node's inputs and outputs, and its FRF service (introspection events).
+DEFAULT_TOPICS = {
+    'pose': 'geometry_msgs/msg/PoseStamped',
+    'wrench': 'geometry_msgs/msg/WrenchStamped',
+    'predicted_displacement': 'geometry_msgs/msg/Vector3Stamped',
+    'cable_tensions': 'sensor_msgs/msg/JointState',
+    '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
+    service_event_topic('frequency_response'): 'rcl_interfaces/srv/GetParameters_Event',
+}
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='cdpr_record',
+        description='Record cdpr_dynamics topics to a rosbag2-compatible MCAP file '
+                    'until SIGINT or SIGTERM.')
+    parser.add_argument('--output', '-o', required=True, metavar='PATH',
+                        help='MCAP file to write (refused if it exists, unless --force)')
+    parser.add_argument('--topics', nargs='+', metavar='T',
+                        help='topics to record (default: ' + ', '.join(DEFAULT_TOPICS) +
+                             '); the type is taken from the publishers unless it is one of '
+                             'the defaults')
+    parser.add_argument('--force', action='store_true',
+                        help='replace an existing output file')
+    parser.add_argument('--chunk-size', type=int, default=None, metavar='BYTES',
+                        help='close a chunk when it holds this many bytes (default 786432)')
+    parser.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='none',
+                        help='chunk compression (default none, as rosbag2)')
+    return parser
+
+
+def _fail(message: str, code: int = 1) -> int:
+    print(f'cdpr_record: error: {message}', file=sys.stderr, flush=True)
+    return code
+
+
+def _drain(executor, recorder, budget_s: float = 0.5) -> None:
+    """Take what the middleware already holds before closing (bounded, stops when idle)."""
+    deadline = time.monotonic() + budget_s
+    idle = 0
+    while idle < 3 and time.monotonic() < deadline:
+        before = recorder.message_count
+        executor.spin_once(timeout_sec=0.01)
+        idle = idle + 1 if recorder.message_count == before else 0
+
+
+def main(argv=None) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.utilities import remove_ros_args
+
+    from cdpr_dynamics.recording import DEFAULT_CHUNK_SIZE, Recorder, RecordingError
+
+    argv = sys.argv if argv is None else ['cdpr_record', *argv]
+    args = _parser().parse_args(remove_ros_args(argv)[1:])
+    if args.topics:
+        topics = {name: DEFAULT_TOPICS.get(name) for name in args.topics}
+    else:
+        topics = dict(DEFAULT_TOPICS)
+
+    if os.path.lexists(args.output) and not args.force:
+        return _fail(f'{args.output} exists; not overwriting it (use --force to replace it)')
+
+    # Our own handlers: a signal only sets a flag, so no exception lands mid-write.
+    stop = threading.Event()
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node = recorder = executor = None
+    status = 0
+    try:
+        node = rclpy.create_node('cdpr_record')
+        wake = node.create_guard_condition(lambda: None)
+
+        def on_signal(signum, frame):
+            stop.set()
+            wake.trigger()
+
+        signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGTERM, on_signal)
+        recorder = Recorder(node, args.output, topics, force=args.force,
+                            chunk_size=args.chunk_size or DEFAULT_CHUNK_SIZE,
+                            compression=args.compression)
+        print(f'cdpr_record: recording {", ".join(sorted(recorder.topic_counts))} '
+              f'to {recorder.path.resolve()} (Ctrl-C or SIGTERM to stop)', flush=True)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once()
+        _drain(executor, recorder)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RecordingError as err:
+        status = _fail(str(err))
+    except OSError as err:
+        status = _fail(f'{getattr(err, "filename", "") or ""} {err.strerror or err}'.strip())
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C must not cut the close
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        if recorder is not None:
+            try:
+                summary = recorder.close()
+                seen = [f'{name} {count}' for name, count in sorted(summary.topics.items())]
+                print(f'cdpr_record: wrote {summary.message_count} messages '
+                      f'({summary.bytes} bytes, {summary.chunk_count} chunks) to '
+                      f'{summary.path.resolve()}: {", ".join(seen)}', flush=True)
+            except OSError as err:
+                status = _fail(f'could not finish {recorder.path}: {err.strerror or err}')
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,345 @@
+"""MCAP conventions of rosbag2 (Jazzy, storage plugin ``mcap``), built from the installed types.
+
+What a rosbag2-compatible MCAP file carries, and where each piece comes from here:
+
+* Header: profile ``ros2``; the library string is free-form (rosbag2 writes ``libmcap x.y.z``).
+* Schema per message type: name ``pkg/msg/Type``, encoding ``ros2msg``, data = the *complete*
+  message definition (:func:`message_definition`): the type's own ``.msg`` text, then every
+  type it uses (sorted by the name written in the field, depth first, each once), behind a
+  newline, a line of 80 ``=`` and a ``MSG: pkg/Type`` line. The text is read from the
+  ``.msg`` files of the installed packages found through the ament index, exactly as
+  rosbag2's ``LocalMessageDefinitionSource`` does.
+* Channel per topic: message encoding ``cdr``, metadata ``offered_qos_profiles`` (the QoS of
+  the publishers seen, YAML text as rosbag2 Jazzy writes it, :func:`offered_qos_profiles_yaml`)
+  and ``topic_type_hash`` (the RIHS01 type hash, :func:`type_hash`).
+* A metadata record ``rosbag2`` with ``serialized_metadata`` (the bag's metadata.yaml content,
+  version 9), written when the file is closed (:func:`rosbag2_serialized_metadata`).
+
+Service events (``<service>/_service_event``, type ``pkg/srv/Srv_Event``) have no ``.msg`` file:
+rosbag2 Jazzy stores the raw ``.srv`` text behind an ``SRV:`` line there, which no decoder can
+use (ros2/rosbag2#1966, #2365). Here the event is described as the message it is
+(``info``, ``request[<=1]``, ``response[<=1]``), with the request and response halves of the
+``.srv`` file as ``MSG: pkg/Srv_Request`` and ``MSG: pkg/Srv_Response`` sections (two-part
+names: the .msg parsers of mcap-ros2-support and rosbags accept no ``srv`` in a field type).
+rosbags decodes these events once the ``pkg/srv/Srv_Event`` name is registered (its type system
+files it as ``pkg/srv/msg/Srv_Event``); mcap-ros2-support 0.6 rejects any message name with an
+underscore, so no schema text makes it decode a service event.
+
+No ROS client library is needed: this module reads files only.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import sys
+from functools import lru_cache
+from typing import Iterable, Mapping, Sequence
+
+PROFILE = 'ros2'
+SCHEMA_ENCODING = 'ros2msg'
+MESSAGE_ENCODING = 'cdr'
+SERVICE_EVENT_SUFFIX = '/_service_event'
+ROSBAG2_METADATA_NAME = 'rosbag2'
+ROSBAG2_METADATA_VERSION = 9  # Jazzy: QoS policies serialised by name
+
+SEPARATOR = '=' * 80 + '\n'
+
+# rosbag2_cpp local_message_definition_source.cpp: field types of a .msg text.
+_FIELD_TYPE = re.compile(r'(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+')
+# rosbag2's list, plus wstring (rosbag2 would look for a type called "wstring" and give up).
+_PRIMITIVES = frozenset({
+    'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16', 'uint16',
+    'int32', 'uint32', 'int64', 'uint64', 'string', 'wstring'})
+_NAME = r'[a-zA-Z][a-zA-Z0-9_]*'
+_TYPE_NAME = re.compile(rf'^({_NAME})/(?:({_NAME})/)?({_NAME})$')
+
+# rmw's RMW_DURATION_INFINITE as rosbag2 stores it.
+_INFINITE_SEC = 9223372036
+_INFINITE_NSEC = 854775807
+_HISTORY = {0: 'system_default', 1: 'keep_last', 2: 'keep_all'}
+_RELIABILITY = {0: 'system_default', 1: 'reliable', 2: 'best_effort', 4: 'best_available'}
+_DURABILITY = {0: 'system_default', 1: 'transient_local', 2: 'volatile', 4: 'best_available'}
+_LIVELINESS = {0: 'system_default', 1: 'automatic', 3: 'manual_by_topic', 5: 'best_available'}
+
+
+class SchemaError(LookupError):
+    """A type whose definition cannot be found in the installed packages; says which."""
+
+
+def split_type_name(type_name: str) -> tuple[str, str, str]:
+    """Split ``pkg/msg/Type`` (or ``pkg/Type``) into package, namespace and name."""
+    match = _TYPE_NAME.match(type_name)
+    if not match:
+        raise SchemaError(f'not a ROS type name: {type_name!r} (expected pkg/msg/Type)')
+    package, namespace, name = match.groups()
+    return package, namespace or 'msg', name
+
+
+def is_service_event_type(type_name: str) -> bool:
+    """True for the introspection event type of a service, ``pkg/srv/Srv_Event``."""
+    try:
+        _, namespace, name = split_type_name(type_name)
+    except SchemaError:
+        return False
+    return namespace == 'srv' and name.endswith('_Event')
+
+
+def service_event_topic(service_name: str) -> str:
+    """The topic on which a service publishes its introspection events."""
+    return service_name.rstrip('/') + SERVICE_EVENT_SUFFIX
+
+
+def share_directory(package: str) -> str:
+    """share/<package> through the ament index; the running prefix (a venv with the ROS wheels)
+    when AMENT_PREFIX_PATH is not set."""
+    from ament_index_python.packages import (
+        get_package_share_directory, PackageNotFoundError)
+    try:
+        return get_package_share_directory(package)
+    except (PackageNotFoundError, LookupError, ValueError, OSError) as err:
+        marker = os.path.join(sys.prefix, 'share', 'ament_index', 'resource_index', 'packages',
+                              package)
+        if os.path.exists(marker):
+            return os.path.join(sys.prefix, 'share', package)
+        raise SchemaError(
+            f'package {package!r} not found in the ament index '
+            f'(AMENT_PREFIX_PATH={os.environ.get("AMENT_PREFIX_PATH", "")!r}): {err}') from None
+
+
+def _read(path: str, type_name: str) -> str:
+    try:
+        with open(path, encoding='utf-8') as stream:
+            return stream.read()
+    except OSError:
+        raise SchemaError(f'no definition of {type_name} ({path} is missing)') from None
+
+
+@lru_cache(maxsize=None)
+def _srv_halves(package: str, service: str) -> tuple[str, str]:
+    text = _read(os.path.join(share_directory(package), 'srv', service + '.srv'),
+                 f'{package}/srv/{service}')
+    parts = re.split(r'^---[ \t]*\r?\n?', text, maxsplit=1, flags=re.MULTILINE)
+    if len(parts) != 2:
+        raise SchemaError(f'{package}/srv/{service}.srv has no "---" line')
+    return parts[0], parts[1]
+
+
+def _service_part(package: str, name: str) -> str | None:
+    """Text of ``Srv_Request``, ``Srv_Response`` or ``Srv_Event`` of a service, else None."""
+    for suffix in ('_Request', '_Response', '_Event'):
+        if not name.endswith(suffix):
+            continue
+        service = name[:-len(suffix)]
+        request, response = _srv_halves(package, service)
+        if suffix == '_Request':
+            return request
+        if suffix == '_Response':
+            return response
+        # The generated event type; two-part names, which every .msg parser accepts.
+        return (f'service_msgs/ServiceEventInfo info\n'
+                f'{package}/{service}_Request[<=1] request\n'
+                f'{package}/{service}_Response[<=1] response\n')
+    return None
+
+
+@lru_cache(maxsize=None)
+def _definition_text(type_name: str) -> str:
+    """The text of one type, as its .msg file (or .srv half, or event) has it."""
+    package, namespace, name = split_type_name(type_name)
+    if namespace == 'srv':
+        text = _service_part(package, name)
+        if text is None:
+            raise SchemaError(f'{type_name} is a service, not a message type')
+        return text
+    path = os.path.join(share_directory(package), namespace, name + '.msg')
+    if namespace == 'msg' and not os.path.exists(path):
+        # "pkg/Srv_Request" as written in an event definition
+        text = _service_part(package, name)
+        if text is not None:
+            return text
+    return _read(path, type_name)
+
+
+def _dependencies(text: str, package: str) -> list[str]:
+    found = set()
+    for match in _FIELD_TYPE.finditer(text):
+        field_type = match.group(1)
+        if field_type in _PRIMITIVES:
+            continue
+        found.add(field_type if '/' in field_type else f'{package}/{field_type}')
+    return sorted(found)  # rosbag2 keeps them in a std::set
+
+
+@lru_cache(maxsize=None)
+def message_definition(type_name: str) -> str:
+    """Complete ``ros2msg`` definition of a message type, as rosbag2 writes it in a schema.
+
+    The type's text, then for each type it uses (sorted by name as written in the field,
+    depth first, each once) a newline, 80 ``=``, ``MSG: <name as written>`` and its text.
+    Raises :class:`SchemaError` naming the missing type or package.
+    """
+    seen: set[str] = set()
+
+    def append(name: str, depth: int) -> str:
+        if depth <= 0:
+            raise SchemaError(f'definition of {type_name} nests too deeply')
+        text = _definition_text(name)
+        out = [text]
+        for dep in _dependencies(text, split_type_name(name)[0]):
+            if dep in seen:  # rosbag2 keys on the name as written in the field
+                continue
+            seen.add(dep)
+            out.append('\n' + SEPARATOR + f'MSG: {dep}\n' + append(dep, depth - 1))
+        return ''.join(out)
+
+    return append(type_name, 50)
+
+
+@lru_cache(maxsize=None)
+def _hashes_file(package: str, namespace: str, name: str) -> dict:
+    path = os.path.join(share_directory(package), namespace, name + '.json')
+    try:
+        with open(path, encoding='utf-8') as stream:
+            data = json.load(stream)
+    except (OSError, ValueError):
+        return {}
+    return {entry['type_name']: entry['hash_string']
+            for entry in data.get('type_hashes', [])
+            if 'type_name' in entry and 'hash_string' in entry}
+
+
+def type_hash(type_name: str) -> str:
+    """RIHS01 type hash of a type from the installed type description (``.json``), or ''.
+
+    Service request, response and event types are looked up in the service's file.
+    """
+    package, namespace, name = split_type_name(type_name)
+    full = f'{package}/{namespace}/{name}'
+    owner = name
+    if namespace == 'srv':
+        owner = re.sub(r'_(Request|Response|Event)$', '', name)
+    return _hashes_file(package, namespace, owner).get(full, '')
+
+
+def _policy(value, names: Mapping[int, str]) -> str:
+    number = int(getattr(value, 'value', value))
+    return names.get(number, 'unknown')
+
+
+def _duration(value) -> tuple[int, int]:
+    """(sec, nsec) of an rclpy Duration, a number of nanoseconds or a (sec, nsec) pair."""
+    if value is None:
+        return 0, 0
+    if isinstance(value, (tuple, list)):
+        return int(value[0]), int(value[1])
+    nanoseconds = getattr(value, 'nanoseconds', value)
+    if isinstance(nanoseconds, float) and math.isinf(nanoseconds):
+        return _INFINITE_SEC, _INFINITE_NSEC
+    nanoseconds = int(nanoseconds)
+    if nanoseconds >= _INFINITE_SEC * 10**9 + _INFINITE_NSEC:
+        return _INFINITE_SEC, _INFINITE_NSEC
+    return divmod(nanoseconds, 10**9)
+
+
+def qos_profile_to_dict(profile) -> dict:
+    """One QoS profile (rclpy QoSProfile or alike) as rosbag2 Jazzy serialises it."""
+    deadline = _duration(getattr(profile, 'deadline', None))
+    lifespan = _duration(getattr(profile, 'lifespan', None))
+    lease = _duration(getattr(profile, 'liveliness_lease_duration', None))
+    return {
+        'history': _policy(profile.history, _HISTORY),
+        'depth': int(profile.depth or 0),
+        'reliability': _policy(profile.reliability, _RELIABILITY),
+        'durability': _policy(profile.durability, _DURABILITY),
+        'deadline': {'sec': deadline[0], 'nsec': deadline[1]},
+        'lifespan': {'sec': lifespan[0], 'nsec': lifespan[1]},
+        'liveliness': _policy(profile.liveliness, _LIVELINESS),
+        'liveliness_lease_duration': {'sec': lease[0], 'nsec': lease[1]},
+        'avoid_ros_namespace_conventions': bool(
+            getattr(profile, 'avoid_ros_namespace_conventions', False)),
+    }
+
+
+def offered_qos_profiles_yaml(profiles: Iterable) -> str:
+    """YAML text of ``offered_qos_profiles`` as rosbag2 Jazzy writes it (yaml-cpp block style).
+
+    ``profiles`` are rclpy QoSProfiles (e.g. ``TopicEndpointInfo.qos_profile`` of the
+    publishers) or dicts from :func:`qos_profile_to_dict`. No profile gives ``[]``.
+    """
+    items = [p if isinstance(p, Mapping) else qos_profile_to_dict(p) for p in profiles]
+    if not items:
+        return '[]'
+    lines = []
+    for item in items:
+        first = True
+        for key in ('history', 'depth', 'reliability', 'durability', 'deadline', 'lifespan',
+                    'liveliness', 'liveliness_lease_duration',
+                    'avoid_ros_namespace_conventions'):
+            value = item[key]
+            lead = '- ' if first else '  '
+            first = False
+            if isinstance(value, Mapping):
+                lines.append(f'{lead}{key}:')
+                lines.append(f'    sec: {int(value["sec"])}')
+                lines.append(f'    nsec: {int(value["nsec"])}')
+            elif isinstance(value, bool):
+                lines.append(f'{lead}{key}: {"true" if value else "false"}')
+            else:
+                lines.append(f'{lead}{key}: {value}')
+    return '\n'.join(lines)
+
+
+def channel_metadata(type_name: str, qos_profiles: Iterable = (),
+                     topic_type_hash: str | None = None) -> dict[str, str]:
+    """Channel metadata rosbag2 Jazzy writes: ``offered_qos_profiles`` and ``topic_type_hash``.
+
+    ``topic_type_hash`` defaults to :func:`type_hash` of the installed type.
+    """
+    return {
+        'offered_qos_profiles': offered_qos_profiles_yaml(qos_profiles),
+        'topic_type_hash': type_hash(type_name) if topic_type_hash is None else topic_type_hash,
+    }
+
+
+def rosbag2_serialized_metadata(
+        file_name: str, topics: Sequence[Mapping], start_ns: int, end_ns: int,
+        ros_distro: str | None = None) -> str:
+    """YAML of the bag metadata (version 9) stored in the ``rosbag2`` metadata record.
+
+    ``topics``: dicts with ``name``, ``type``, ``offered_qos_profiles`` (list of dicts from
+    :func:`qos_profile_to_dict`), ``type_description_hash`` and ``message_count``.
+    """
+    import yaml
+
+    count = sum(int(t['message_count']) for t in topics)
+    start = int(start_ns) if count else 0
+    duration = max(0, int(end_ns) - int(start_ns)) if count else 0
+    info = {
+        'version': ROSBAG2_METADATA_VERSION,
+        'storage_identifier': 'mcap',
+        'relative_file_paths': [file_name],
+        'duration': {'nanoseconds': duration},
+        'starting_time': {'nanoseconds_since_epoch': start},
+        'message_count': count,
+        'topics_with_message_count': [
+            {'topic_metadata': {
+                'name': t['name'],
+                'type': t['type'],
+                'serialization_format': MESSAGE_ENCODING,
+                'offered_qos_profiles': [dict(q) for q in t.get('offered_qos_profiles', [])],
+                'type_description_hash': t.get('type_description_hash', ''),
+            },
+             'message_count': int(t['message_count'])}
+            for t in topics],
+        'compression_format': '',
+        'compression_mode': '',
+        'files': [{'path': file_name,
+                   'starting_time': {'nanoseconds_since_epoch': start},
+                   'duration': {'nanoseconds': duration},
+                   'message_count': count}],
+        'custom_data': None,
+        'ros_distro': ros_distro or os.environ.get('ROS_DISTRO') or 'jazzy',
+    }
+    return yaml.safe_dump(info, default_flow_style=False, sort_keys=False).strip()

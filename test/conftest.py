@@ -1,0 +1,71 @@
+"""Shared fixtures: an isolated ROS environment for subprocesses, a kept-on-failure folder."""
+from __future__ import annotations
+
+import itertools
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+TEST_OUTPUT = REPO / 'test_output'
+_domain_counter = itertools.count()
+
+
+def unique_domain_id() -> int:
+    """A ROS domain id in 1..232 derived from the pid and a counter (one per call)."""
+    return 1 + (os.getpid() * 31 + next(_domain_counter) * 7) % 232
+
+
+@pytest.fixture
+def ros_env(tmp_path) -> dict:
+    """Environment for ROS subprocesses of one test.
+
+    A domain id of its own, localhost-only discovery, logs under the test's tmp folder, the
+    venv's ament prefix and the repository on PYTHONPATH; RMW_IMPLEMENTATION left as it is.
+    """
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(unique_domain_id())
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env.pop('ROS_LOCALHOST_ONLY', None)
+    env.pop('ROS_STATIC_PEERS', None)
+    log_dir = tmp_path / 'ros_log'
+    log_dir.mkdir(exist_ok=True)
+    env['ROS_LOG_DIR'] = str(log_dir)
+    prefixes = [p for p in env.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    if sys.prefix not in prefixes:   # the venv that holds the ROS wheels
+        prefixes.insert(0, sys.prefix)
+    env['AMENT_PREFIX_PATH'] = os.pathsep.join(prefixes)
+    env['PYTHONPATH'] = os.pathsep.join(
+        [str(REPO)] + [p for p in env.get('PYTHONPATH', '').split(os.pathsep) if p])
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    setattr(item, f'rep_{report.when}', report)
+
+
+@pytest.fixture
+def output_dir(request) -> Path:
+    """test_output/<module>/<test>/: for recordings and logs of a test; removed if it passes."""
+    module = Path(str(request.node.fspath)).stem
+    name = ''.join(c if c.isalnum() or c in '-_.' else '_' for c in request.node.name)
+    path = TEST_OUTPUT / module / name
+    shutil.rmtree(path, ignore_errors=True)
+    path.mkdir(parents=True)
+    yield path
+    failed = any(getattr(getattr(request.node, f'rep_{when}', None), 'failed', False)
+                 for when in ('setup', 'call'))
+    if not failed and not os.environ.get('CDPR_KEEP_TEST_OUTPUT'):
+        shutil.rmtree(path, ignore_errors=True)
+        for folder in (path.parent, TEST_OUTPUT):   # only if nothing else is kept there
+            try:
+                folder.rmdir()
+            except OSError:
+                break

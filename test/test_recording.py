@@ -1,0 +1,596 @@
+"""MCAP recording: cdpr_record as a process, files read back by independent readers.
+
+Every ROS process runs as a subprocess with a domain id of its own (fixture ``ros_env``); the
+recordings land in ``test_output/test_recording/<test>/``, kept when a test fails.
+Figures (throughput, bytes per message, what a SIGKILL lost) are printed: ``pytest -s``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from mcap.exceptions import EndOfFile
+from mcap.reader import make_reader, NonSeekingReader
+from mcap.writer import CompressionType, Writer
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader
+from rosbags.interfaces import QosReliability
+from rosbags.rosbag2.metadata import parse_qos
+from rosbags.typesys import get_types_from_msg, get_typestore, Stores
+
+from cdpr_dynamics.recording import (
+    read_messages, recording_info, RecordingError, recover_recording)
+from msg_adapters import mcap_schema
+
+PYTHON = sys.executable
+N_PER_TOPIC = 20
+EVENT_TOPIC = '/frequency_response/_service_event'
+EVENT_TYPE = 'rcl_interfaces/srv/GetParameters_Event'
+TYPES = {
+    '/pose': 'geometry_msgs/msg/PoseStamped',
+    '/wrench': 'geometry_msgs/msg/WrenchStamped',
+    '/predicted_displacement': 'geometry_msgs/msg/Vector3Stamped',
+    '/cable_tensions': 'sensor_msgs/msg/JointState',
+    '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
+}
+
+# A node that publishes known messages on the node's topics and serves frequency_response with
+# service introspection, so the recorder has every kind of traffic it must record.
+PUBLISHER = r'''
+import json, os, sys, time
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import qos_profile_services_default
+from rclpy.service_introspection import ServiceIntrospectionState
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped, Vector3Stamped, WrenchStamped
+from rcl_interfaces.msg import ParameterValue
+from rcl_interfaces.srv import GetParameters
+from sensor_msgs.msg import JointState
+
+mode, out = sys.argv[1], sys.argv[2]
+rclpy.init()
+node = Node('fake_cdpr')
+
+
+def wait(condition, timeout, what):
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            sys.exit('publisher: timed out waiting for ' + what)
+        rclpy.spin_once(node, timeout_sec=0.05)
+
+
+def report(data):
+    with open(out + '.tmp', 'w') as f:
+        json.dump(data, f)
+    os.replace(out + '.tmp', out)   # the test sees the whole file or none
+
+
+def stamp(msg, i):
+    msg.header.stamp.sec = 1000 + i
+    msg.header.stamp.nanosec = 1000 * i
+    msg.header.frame_id = 'world'
+    return msg
+
+
+if mode == 'known':
+    n = int(sys.argv[3])
+    pubs = {name: node.create_publisher(cls, name, 100) for name, cls in (
+        ('pose', PoseStamped), ('wrench', WrenchStamped),
+        ('predicted_displacement', Vector3Stamped), ('cable_tensions', JointState),
+        ('/diagnostics', DiagnosticArray))}
+
+    def frf(request, response):
+        response.values = [ParameterValue(type=8, double_array_value=[1.0, 2.0, 3.0])
+                           for _ in request.names]
+        return response
+
+    service = node.create_service(GetParameters, 'frequency_response', frf)
+    service.configure_introspection(node.get_clock(), qos_profile_services_default,
+                                    ServiceIntrospectionState.CONTENTS)
+    wait(lambda: all(p.get_subscription_count() > 0 for p in pubs.values())
+         and node.count_subscribers('/frequency_response/_service_event') > 0,
+         30.0, 'the recorder to subscribe')
+    for i in range(n):
+        m = stamp(PoseStamped(), i)
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = 0.001 * i, -0.002 * i, 1.25
+        m.pose.orientation.w = 1.0
+        pubs['pose'].publish(m)
+        m = stamp(WrenchStamped(), i)
+        m.wrench.force.z = 1500.0 + i
+        m.wrench.torque.x = 0.5 * i
+        pubs['wrench'].publish(m)
+        m = stamp(Vector3Stamped(), i)
+        m.vector.x, m.vector.z = 1e-6 * i, -2e-6 * i
+        pubs['predicted_displacement'].publish(m)
+        m = stamp(JointState(), i)
+        m.name = ['cable_%d' % k for k in range(8)]
+        m.position = [1.5 + 0.01 * k for k in range(8)]
+        m.effort = [100.0 + i + k for k in range(8)]
+        pubs['cable_tensions'].publish(m)
+        m = DiagnosticArray()
+        m.header.stamp.sec, m.header.stamp.nanosec = 1000 + i, 1000 * i
+        m.status = [DiagnosticStatus(level=DiagnosticStatus.WARN, name='cdpr_dynamics',
+                                     message='step %d' % i, hardware_id='sim',
+                                     values=[KeyValue(key='i', value=str(i))])]
+        pubs['/diagnostics'].publish(m)
+        time.sleep(0.002)   # pacing, not synchronisation
+    client = node.create_client(GetParameters, 'frequency_response')
+    wait(client.service_is_ready, 10.0, 'the service')
+    future = client.call_async(GetParameters.Request(names=['frequency_hz']))
+    wait(future.done, 10.0, 'the service response')
+    report({'published': n, 'response': list(future.result().values[0].double_array_value)})
+    sys.stdin.read()   # keep the writers alive until the test is done
+
+elif mode in ('steady', 'flood'):
+    rate, duration = float(sys.argv[3]), float(sys.argv[4])
+    pub = node.create_publisher(PoseStamped, 'pose', 100)
+    wait(lambda: pub.get_subscription_count() > 0, 30.0, 'the recorder to subscribe')
+    stamps = []
+    msg = PoseStamped()
+    t0 = time.monotonic()
+    with open(out + '.started.tmp', 'w') as f:
+        f.write(str(time.time_ns()))
+    os.replace(out + '.started.tmp', out + '.started')
+    i = 0
+    while True:
+        now = time.monotonic()
+        if now - t0 >= duration:
+            break
+        if mode == 'steady':
+            target = t0 + i / rate
+            if now < target:
+                time.sleep(target - now)
+        ns = time.time_ns()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ns, 10**9)
+        msg.pose.position.x = float(i)
+        pub.publish(msg)
+        if mode == 'steady':
+            stamps.append(ns)
+        i += 1
+    report({'published': i, 'seconds': time.monotonic() - t0, 'stamps': stamps})
+    sys.stdin.read()
+'''
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def wait_until(condition, timeout: float, what: str, period: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+        time.sleep(period)
+
+
+class Processes:
+    """Subprocesses of one test, logged to its output folder, all stopped at the end."""
+
+    def __init__(self, env: dict, folder: Path):
+        self.env, self.folder, self.procs = env, folder, []
+
+    def start(self, name: str, args: list, stdin=None) -> subprocess.Popen:
+        out = open(self.folder / f'{name}.out', 'w')
+        err = open(self.folder / f'{name}.err', 'w')
+        proc = subprocess.Popen(args, env=self.env, stdout=out, stderr=err, stdin=stdin,
+                                cwd=self.folder, start_new_session=True)
+        proc.log_names = (self.folder / f'{name}.out', self.folder / f'{name}.err')
+        self.procs.append(proc)
+        return proc
+
+    def recorder(self, path: Path, *extra) -> subprocess.Popen:
+        return self.start('cdpr_record', [PYTHON, '-m', 'cdpr_dynamics.cli.record',
+                                          '--output', str(path), *extra])
+
+    def publisher(self, *args) -> subprocess.Popen:
+        script = self.folder / 'fake_cdpr.py'
+        script.write_text(PUBLISHER)
+        return self.start('publisher', [PYTHON, str(script), *map(str, args)],
+                          stdin=subprocess.PIPE)
+
+    def stop_all(self):
+        for proc in self.procs:
+            if proc.poll() is None:
+                if proc.stdin:
+                    proc.stdin.close()
+                try:
+                    proc.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    proc.wait(timeout=5)
+
+
+@pytest.fixture
+def procs(ros_env, output_dir):
+    p = Processes(ros_env, output_dir)
+    yield p
+    p.stop_all()
+
+
+def counts_so_far(path: Path) -> dict:
+    """Messages per topic in a file being written (what its closed chunks hold)."""
+    if not path.exists():
+        return {}
+    try:
+        return {k: t.message_count for k, t in recording_info(path).topics.items()}
+    except RecordingError:
+        return {}
+
+
+def finish(proc: subprocess.Popen, sig, timeout: float = 20.0) -> str:
+    proc.send_signal(sig)
+    proc.wait(timeout=timeout)
+    out, err = (p.read_text() for p in proc.log_names)
+    assert proc.returncode == 0, f'recorder exited {proc.returncode}: {err}'
+    assert 'Traceback' not in err, err
+    return out
+
+
+def expected_fields(topic: str, i: int) -> dict:
+    """What the fake node published as message i on a topic (attribute path -> value)."""
+    stamp = {'header.stamp.sec': 1000 + i, 'header.stamp.nanosec': 1000 * i}
+    if topic == '/pose':
+        return {**stamp, 'header.frame_id': 'world', 'pose.position.x': 0.001 * i,
+                'pose.position.y': -0.002 * i, 'pose.position.z': 1.25,
+                'pose.orientation.w': 1.0}
+    if topic == '/wrench':
+        return {**stamp, 'wrench.force.z': 1500.0 + i, 'wrench.torque.x': 0.5 * i}
+    if topic == '/predicted_displacement':
+        return {**stamp, 'vector.x': 1e-6 * i, 'vector.z': -2e-6 * i}
+    if topic == '/cable_tensions':
+        return {**stamp, 'name': [f'cable_{k}' for k in range(8)],
+                'position': [1.5 + 0.01 * k for k in range(8)],
+                'effort': [100.0 + i + k for k in range(8)]}
+    if topic == '/diagnostics':
+        return {**stamp, 'status.0.name': 'cdpr_dynamics', 'status.0.message': f'step {i}',
+                'status.0.hardware_id': 'sim', 'status.0.values.0.key': 'i',
+                'status.0.values.0.value': str(i)}
+    raise KeyError(topic)
+
+
+def field(msg, dotted: str):
+    for part in dotted.split('.'):
+        msg = msg[int(part)] if part.isdigit() else getattr(msg, part)
+    return msg
+
+
+def check_fields(topic: str, i: int, msg, reader: str):
+    for path, want in expected_fields(topic, i).items():
+        have = field(msg, path)
+        if isinstance(want, list):
+            have = list(have)
+            if want and isinstance(want[0], float):
+                assert have == pytest.approx(want), (reader, topic, i, path)
+                continue
+        if isinstance(want, float):
+            assert have == pytest.approx(want, rel=1e-12, abs=1e-15), (reader, topic, i, path)
+        else:
+            assert have == want, (reader, topic, i, path, have)
+
+
+def index_of(topic: str, msg) -> int:
+    return int(field(msg, 'header.stamp.sec')) - 1000
+
+
+def rosbags_read(path: Path) -> tuple[dict, dict]:
+    """Every message of a file through rosbags: topic -> list of (log time, message)."""
+    out, types = {}, {}
+    with AnyReader([path]) as reader:
+        # rosbags' type system has no 'srv' namespace: it files pkg/srv/X as pkg/srv/msg/X.
+        for conn in reader.connections:
+            if '/srv/' in conn.msgtype and conn.msgtype not in reader.typestore.fielddefs:
+                mangled = conn.msgtype.replace('/srv/', '/srv/msg/')
+                reader.typestore.register({conn.msgtype: reader.typestore.fielddefs[mangled]})
+        for conn in reader.connections:
+            types[conn.topic] = (conn.msgtype, conn.msgcount,
+                                 conn.ext.serialization_format, conn.ext.offered_qos_profiles)
+        for conn, timestamp, raw in reader.messages():
+            out.setdefault(conn.topic, []).append(
+                (timestamp, reader.deserialize(raw, conn.msgtype)))
+    return out, types
+
+
+# ----------------------------------------------------------------------------- schemas (no ROS)
+
+
+@pytest.mark.parametrize('type_name', [*TYPES.values(), 'std_msgs/msg/Header'])
+def test_definition_hashes_to_the_installed_type_hash(type_name):
+    """The concatenated definition, parsed by rosbags, gives the RIHS01 hash of the wheels."""
+    text = mcap_schema.message_definition(type_name)
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(text, type_name))
+    assert mcap_schema.type_hash(type_name).startswith('RIHS01_')
+    assert store.hash_rihs01(type_name) == mcap_schema.type_hash(type_name)
+
+
+def test_definition_layout_is_rosbag2s():
+    text = mcap_schema.message_definition('geometry_msgs/msg/PoseStamped')
+    share = Path(mcap_schema.share_directory('geometry_msgs'))
+    assert text.startswith((share / 'msg' / 'PoseStamped.msg').read_text())
+    sections = text.split('\n' + '=' * 80 + '\n')
+    # dependencies sorted by the name written in the field, depth first, each once
+    assert [s.splitlines()[0] for s in sections[1:]] == [
+        'MSG: geometry_msgs/Pose', 'MSG: geometry_msgs/Point', 'MSG: geometry_msgs/Quaternion',
+        'MSG: std_msgs/Header', 'MSG: builtin_interfaces/Time']
+    event = mcap_schema.message_definition(EVENT_TYPE)
+    assert event.splitlines()[:3] == [
+        'service_msgs/ServiceEventInfo info',
+        'rcl_interfaces/GetParameters_Request[<=1] request',
+        'rcl_interfaces/GetParameters_Response[<=1] response']
+    assert 'MSG: rcl_interfaces/ParameterValue' in event
+    assert mcap_schema.type_hash(EVENT_TYPE).startswith('RIHS01_')
+    with pytest.raises(mcap_schema.SchemaError, match='no_such_pkg'):
+        mcap_schema.message_definition('no_such_pkg/msg/Nothing')
+
+
+def test_offered_qos_profiles_yaml_is_rosbag2_jazzys():
+    from rclpy.qos import QoSProfile, DurabilityPolicy, ReliabilityPolicy
+    profile = QoSProfile(depth=7, reliability=ReliabilityPolicy.BEST_EFFORT,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    text = mcap_schema.offered_qos_profiles_yaml([profile])
+    assert text == '\n'.join([
+        '- history: keep_last', '  depth: 7', '  reliability: best_effort',
+        '  durability: transient_local', '  deadline:', '    sec: 0', '    nsec: 0',
+        '  lifespan:', '    sec: 0', '    nsec: 0', '  liveliness: system_default',
+        '  liveliness_lease_duration:', '    sec: 0', '    nsec: 0',
+        '  avoid_ros_namespace_conventions: false'])
+    assert mcap_schema.offered_qos_profiles_yaml([]) == '[]'
+    (parsed,) = parse_qos(text)
+    assert parsed.depth == 7 and parsed.reliability == QosReliability.BEST_EFFORT
+
+
+# ----------------------------------------------------------------------------- SIGINT / SIGTERM
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_record_and_read_back_with_independent_readers(procs, output_dir, sig):
+    path = output_dir / 'traffic.mcap'
+    recorder = procs.recorder(path)
+    done = output_dir / 'published.json'
+    procs.publisher('known', done, N_PER_TOPIC)
+    wait_until(done.exists, 60, 'the fake node to publish')
+    want = {**{t: N_PER_TOPIC for t in TYPES}, EVENT_TOPIC: 2}
+    wait_until(lambda: counts_so_far(path) == want, 20,
+               f'the recording to hold {want} (has {counts_so_far(path)})')
+    out = finish(recorder, sig)
+    total = sum(want.values())
+    assert f'wrote {total} messages' in out and str(path.resolve()) in out, out
+
+    # --- the file: profile, schemas, channels, summary and index (mcap) ---
+    with open(path, 'rb') as stream:
+        reader = make_reader(stream)
+        header = reader.get_header()
+        summary = reader.get_summary()
+        assert header.profile == 'ros2' and header.library
+        assert summary.statistics.message_count == total
+        assert summary.chunk_indexes
+        assert summary.statistics.chunk_count == len(summary.chunk_indexes)
+        assert all(ci.message_index_offsets for ci in summary.chunk_indexes)  # indexed
+        schemas = {s.name: s for s in summary.schemas.values()}
+        assert set(schemas) == {*TYPES.values(), EVENT_TYPE}
+        for name, schema in schemas.items():
+            assert schema.encoding == 'ros2msg'
+            assert schema.data.decode() == mcap_schema.message_definition(name)
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert set(channels) == set(want)
+        for topic, channel in channels.items():
+            type_name = summary.schemas[channel.schema_id].name
+            assert channel.message_encoding == 'cdr'
+            assert set(channel.metadata) == {'offered_qos_profiles', 'topic_type_hash'}
+            assert channel.metadata['topic_type_hash'] == mcap_schema.type_hash(type_name)
+            qos = parse_qos(channel.metadata['offered_qos_profiles'])
+            assert qos and all(q.reliability == QosReliability.RELIABLE for q in qos), topic
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        bag = yaml.safe_load(meta['rosbag2']['serialized_metadata'])
+        assert bag['version'] == 9 and bag['message_count'] == total
+        assert {t['topic_metadata']['name']: t['message_count']
+                for t in bag['topics_with_message_count']} == want
+
+    # --- mcap + mcap-ros2-support: decode every message (it rejects the event type's name) ---
+    seen = {}
+    with open(path, 'rb') as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        for schema, channel, message in reader.iter_messages():
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            assert message.publish_time <= message.log_time
+            if channel.topic == EVENT_TOPIC:
+                continue
+            decoded = DecoderFactory().decoder_for('cdr', schema)(message.data)
+            check_fields(channel.topic, index_of(channel.topic, decoded), decoded, 'mcap_ros2')
+    assert seen == want
+
+    # --- rosbags: types, counts, QoS, every message decoded ---
+    by_topic, types = rosbags_read(path)
+    assert {t: (v[0], v[1], v[2]) for t, v in types.items()} == {
+        **{t: (TYPES[t], N_PER_TOPIC, 'cdr') for t in TYPES}, EVENT_TOPIC: (EVENT_TYPE, 2, 'cdr')}
+    for topic in TYPES:
+        msgs = by_topic[topic]
+        assert [index_of(topic, m) for _, m in msgs] == list(range(N_PER_TOPIC))
+        for i, (_, m) in enumerate(msgs):
+            check_fields(topic, i, m, 'rosbags')
+    events = [m for _, m in by_topic[EVENT_TOPIC]]
+    assert [e.info.event_type for e in events] == [1, 2]  # REQUEST_RECEIVED, RESPONSE_SENT
+    assert list(events[0].request[0].names) == ['frequency_hz']
+    assert list(events[1].response[0].values[0].double_array_value) == [1.0, 2.0, 3.0]
+
+    # --- read_messages (rclpy classes): same content, log-time order ---
+    got = list(read_messages(path))
+    assert len(got) == total
+    assert [m.log_time_ns for m in got] == sorted(m.log_time_ns for m in got)
+    for topic in TYPES:
+        mine = [m for m in got if m.topic == topic]
+        assert {m.type for m in mine} == {TYPES[topic]}
+        for i, m in enumerate(mine):
+            check_fields(topic, i, m.message, 'read_messages')
+    events = [m.message for m in got if m.topic == EVENT_TOPIC]
+    assert list(events[1].response[0].values[0].double_array_value) == [1.0, 2.0, 3.0]
+    only = list(read_messages(path, {'pose': 'geometry_msgs/msg/PoseStamped'}))
+    assert len(only) == N_PER_TOPIC and {m.topic for m in only} == {'/pose'}
+
+
+# ----------------------------------------------------------------------------- SIGKILL
+
+
+def test_sigkill_loses_at_most_the_last_second(procs, output_dir):
+    rate, run_s = 200.0, 3.0
+    path = output_dir / 'killed.mcap'
+    recorder = procs.recorder(path)
+    done = output_dir / 'steady.json'
+    publisher = procs.publisher('steady', done, rate, run_s + 3.0)
+    started = Path(str(done) + '.started')
+    wait_until(started.exists, 60, 'the publisher to start')
+    t_start = int(started.read_text()) / 1e9
+    time.sleep(max(0.0, t_start + run_s - time.time()))   # the experiment: record for run_s
+    killed_at = time.time_ns()
+    recorder.send_signal(signal.SIGKILL)
+    recorder.wait(timeout=10)
+    publisher.stdin.close()
+    wait_until(done.exists, 30, 'the publisher to finish')
+    sent = sum(1 for s in json.loads(done.read_text())['stamps'] if s < killed_at)
+
+    with pytest.raises(RecordingError, match='incomplete'):
+        next(read_messages(path))
+    survivors = list(read_messages(path, allow_incomplete=True))
+    xs = [int(m.message.pose.position.x) for m in survivors]
+    assert xs == list(range(len(xs))), 'what survives is the start of the stream, no gaps'
+    lost = sent - len(xs)
+    lost_s = (killed_at - survivors[-1].log_time_ns) / 1e9
+    size = path.stat().st_size
+    info = recording_info(path)
+    print(f'\nSIGKILL after {run_s} s at {rate:.0f} msg/s: {sent} sent before the kill, '
+          f'{len(xs)} survived in {info.chunk_count} chunks ({size} bytes), {lost} lost '
+          f'= the last {lost_s:.2f} s')
+    assert not info.complete and info.topics['/pose'].message_count == len(xs)
+    assert len(xs) >= rate * (run_s - 1.5)
+    assert lost <= rate * 1.3, 'at most ~1 s (chunk interval) plus the 0.1 s check period'
+
+    # mcap's own streaming reader reads the same messages up to the cut
+    count = 0
+    with open(path, 'rb') as stream:
+        try:
+            for _ in NonSeekingReader(stream).iter_messages(log_time_order=False):
+                count += 1
+        except EndOfFile:
+            pass
+    assert count == len(xs)
+    # rosbags needs the footer; the recovered copy is complete and reads everywhere
+    with pytest.raises(Exception):
+        rosbags_read(path)
+    fixed = output_dir / 'recovered.mcap'
+    assert recover_recording(path, fixed) == len(xs)
+    by_topic, _ = rosbags_read(fixed)
+    assert [int(m.pose.position.x) for _, m in by_topic['/pose']] == xs
+    assert recording_info(fixed).complete
+
+
+# ----------------------------------------------------------------------------- throughput
+
+
+def test_throughput_with_a_flooding_publisher(procs, output_dir):
+    path = output_dir / 'flood.mcap'
+    recorder = procs.recorder(path, '--topics', 'pose')
+    done = output_dir / 'flood.json'
+    procs.publisher('flood', done, 0, 2.0)
+    wait_until(done.exists, 60, 'the publisher to finish')
+    published = json.loads(done.read_text())
+    wait_until(lambda: counts_so_far(path).get('/pose', 0) > 0, 10, 'recorded messages')
+    finish(recorder, signal.SIGINT)
+    info = recording_info(path)
+    n = info.message_count
+    rate = n / max(1e-9, (info.end_ns - info.start_ns) / 1e9)
+    per_message = path.stat().st_size / n
+    print(f'\nthroughput: publisher sent {published["published"]} PoseStamped in '
+          f'{published["seconds"]:.1f} s ({published["published"] / published["seconds"]:.0f}/s); '
+          f'recorded {n} at {rate:.0f} msg/s, {per_message:.0f} bytes/message in the file '
+          f'(2 cores shared by both processes)')
+    assert rate > 1000
+    xs = [int(m.message.pose.position.x) for m in read_messages(path)]
+    assert xs == sorted(xs)
+
+
+# ----------------------------------------------------------------------------- bad files (no ROS)
+
+
+def write_sample(path: Path, n: int = 50) -> None:
+    """A small file with the recorder's conventions, written without ROS."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.serialization import serialize_message
+    with open(path, 'wb') as stream:
+        writer = Writer(stream, chunk_size=1024, compression=CompressionType.NONE)
+        writer.start(profile='ros2', library='test')
+        type_name = 'geometry_msgs/msg/PoseStamped'
+        schema = writer.register_schema(type_name, 'ros2msg',
+                                        mcap_schema.message_definition(type_name).encode())
+        channel = writer.register_channel('/pose', 'cdr', schema,
+                                          mcap_schema.channel_metadata(type_name))
+        for i in range(n):
+            msg = PoseStamped()
+            msg.header.stamp.sec = 1000 + i
+            msg.pose.position.x = 0.001 * i
+            writer.add_message(channel, 10**9 + i, serialize_message(msg), 10**9 + i)
+        writer.finish()
+
+
+def test_bad_files_give_one_line_errors(tmp_path):
+    good = tmp_path / 'good.mcap'
+    write_sample(good)
+    assert len(list(read_messages(good))) == 50
+    data = good.read_bytes()
+
+    def error(path, **kwargs) -> str:
+        with pytest.raises(RecordingError) as caught:
+            list(read_messages(path, **kwargs))
+        text = str(caught.value)
+        assert '\n' not in text and str(path) in text
+        return text
+
+    truncated = tmp_path / 'truncated.mcap'
+    truncated.write_bytes(data[:len(data) // 2])
+    assert 'incomplete' in error(truncated)
+    survivors = list(read_messages(truncated, allow_incomplete=True))
+    assert 0 < len(survivors) < 50
+    garbage = tmp_path / 'garbage.mcap'
+    garbage.write_bytes(os.urandom(4096))
+    assert 'not an MCAP file' in error(garbage)
+    empty = tmp_path / 'empty.mcap'
+    empty.write_bytes(b'')
+    assert 'empty' in error(empty)
+    assert 'no such file' in error(tmp_path / 'missing.mcap')
+    assert 'no topic /wrench' in error(good, topics=['wrench'])
+    assert 'has type geometry_msgs/msg/PoseStamped, expected' in error(
+        good, topics={'/pose': 'geometry_msgs/msg/WrenchStamped'})
+    # a flipped byte inside a chunk: the chunk CRC catches it
+    corrupt = tmp_path / 'corrupt.mcap'
+    raw = bytearray(data)
+    at = data.index(b'\x00' * 8, 600)   # inside the first chunk's message data
+    raw[at] ^= 0xFF
+    corrupt.write_bytes(bytes(raw))
+    assert 'corrupt' in error(corrupt)
+    # a cut mid-file, then garbage where the rest was
+    mangled = tmp_path / 'mangled.mcap'
+    mangled.write_bytes(data[:len(data) // 2] + os.urandom(len(data) // 2))
+    assert error(mangled)
+
+
+def test_cli_refuses_to_overwrite(ros_env, tmp_path):
+    target = tmp_path / 'precious.mcap'
+    target.write_bytes(b'what the user recorded')
+    result = subprocess.run(
+        [PYTHON, '-m', 'cdpr_dynamics.cli.record', '--output', str(target)],
+        env=ros_env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert result.stderr.strip().count('\n') == 0 and 'exists' in result.stderr
+    assert 'Traceback' not in result.stderr
+    assert target.read_bytes() == b'what the user recorded'
