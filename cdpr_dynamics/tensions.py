@@ -21,14 +21,17 @@ warm-started from the previous solution, so a live node pays a few tens of micro
 
 Infeasibility is never taken on the solver's word alone. Before the QP a cheap necessary test
 compares each wrench component with the range the box can produce (below); after it the returned
-T is checked against (11) and (12) within ``tolerance_n``. When the QP fails, a second, always
-feasible QP finds the tensions in the box that come closest to w,
+T is checked against (11) and (12) within ``tolerance_n``. proxsuite certifies a grossly
+infeasible QP in a few iterations but may iterate for seconds on a mildly infeasible one, so its
+iterations are capped (``max_iter``; feasible problems need up to ~16 cold, 2-3 warm). When the QP
+fails, a second, always feasible QP (:func:`closest_tensions`) finds the tensions in the box that
+come closest to w,
 
     minimise 1/2 |W^T T - w|^2  subject to  T_min <= T_i <= T_max,
 
 whose residual says whether w is out of reach (status ``'infeasible'``, with these closest
-tensions as the best effort) or the QP merely ran out of iterations (``'max_iter'``). This costs a
-bounded ~0.5-3 ms, only on failure.
+tensions as the best effort) or the QP merely stopped early (one cold retry with 4x the
+iterations, then ``'max_iter'``). A failure costs about 0.1-2 ms; a success pays nothing for it.
 
 Range of one wrench component j over the box (exact per row, necessary for the whole wrench):
 
@@ -44,7 +47,7 @@ import proxsuite
 
 _proxqp = proxsuite.proxqp
 
-#: proxsuite outcomes that are not a converged answer, as TensionResult.status strings.
+#: proxsuite outcomes as TensionResult.status strings.
 _STATUS = {
     _proxqp.PROXQP_SOLVED: 'solved',
     _proxqp.PROXQP_PRIMAL_INFEASIBLE: 'infeasible',
@@ -55,7 +58,7 @@ _STATUS = {
 }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TensionResult:
     """Outcome of one tension distribution.
 
@@ -66,7 +69,8 @@ class TensionResult:
     ``feasible``: status ``'solved'`` and bounds and ``W^T T = w`` hold within ``tolerance_n``.
     ``residual_n``: max |W^T T - w| (N, N m). ``iterations``: proxsuite iterations of the main QP
     (0 when it was not run). ``reason``: one readable line when not feasible, else ''.
-    ``solve_time_s``: wall time of :meth:`TensionSolver.solve`.
+    ``solve_time_s``: wall time of :meth:`TensionSolver.solve`. ``tolerance_n``: the tolerance
+    (N, N m) that ``feasible`` was judged with.
     """
 
     tension_n: np.ndarray
@@ -80,11 +84,12 @@ class TensionResult:
 
 
 def _fmt(v) -> str:
-    return np.array2string(np.asarray(v, dtype=float), precision=4, suppress_small=True,
-                           separator=', ', floatmode='maxprec', max_line_width=10_000)
+    """A short vector for messages: ``[0, 0, 294.3]``."""
+    return '[' + ', '.join(f'{x:.4g}' for x in np.asarray(v, dtype=float).tolist()) + ']'
 
 
 def _box(n_cables: int, t_min_n: float, t_max_n: float) -> tuple[float, float]:
+    """The tension bounds (N) as floats, checked: finite and T_min <= T_max."""
     if n_cables < 1:
         raise ValueError(f'need at least one cable, got n_cables = {n_cables}')
     lo, hi = float(t_min_n), float(t_max_n)
@@ -96,8 +101,11 @@ def _box(n_cables: int, t_min_n: float, t_max_n: float) -> tuple[float, float]:
 
 
 def _objective(n: int, weights, linear) -> tuple[np.ndarray, np.ndarray]:
-    """C (n, n) and c (n,) from the user's ``weights`` (None, (n,) diagonal or (n, n)) and
-    ``linear`` (None or (n,)); C must be symmetric positive semi-definite."""
+    """Objective terms C (n, n) and c (n,) of Eq. 10, checked.
+
+    ``weights``: None (C = I), an (n,) diagonal or an (n, n) symmetric positive semi-definite
+    matrix; ``linear``: None (c = 0) or (n,) in N.
+    """
     if weights is None:
         c_mat = np.eye(n)
     else:
@@ -128,9 +136,14 @@ class TensionSolver:
     pose. ``weights``: C as an (n,) diagonal or an (n, n) symmetric PSD matrix (default I);
     ``linear``: c (n,) in N (default 0). ``tolerance_n``: allowed violation of the bounds and of
     W^T T = w for a feasible answer (default 1e-7 max(1, |T_min|, |T_max|) N, i.e. 0.1 mN for
-    T_max = 1000 N); proxsuite runs to 1/100 of it. ``max_iter``: cap on proxsuite's outer
-    iterations, which bounds the time spent on an infeasible wrench (proxsuite does not always
-    certify a mildly infeasible QP and would otherwise iterate for seconds).
+    T_max = 1000 N); proxsuite itself runs to eps_abs = 1e-12 max(1, |T_min|, |T_max|) N.
+    ``max_iter``: cap on proxsuite's outer and inner iterations per attempt, which bounds the
+    time spent on an infeasible wrench (proxsuite does not always certify a mildly infeasible QP
+    and would otherwise iterate for seconds). ``warm_start=False`` solves every pose cold.
+
+    Attempts per :meth:`solve`: warm (when the previous solve succeeded), then cold; on failure
+    :func:`closest_tensions` decides between 'infeasible' and one last cold attempt with
+    4 x ``max_iter``.
 
     Raises ValueError for invalid settings (T_min > T_max, non-finite bounds, bad weights);
     :meth:`solve` raises only for wrong array shapes and reports every other problem in its
@@ -139,7 +152,7 @@ class TensionSolver:
 
     def __init__(self, n_cables: int, ndof: int, t_min_n: float, t_max_n: float,
                  weights=None, linear=None, *, tolerance_n: float | None = None,
-                 warm_start: bool = True, max_iter: int = 100):
+                 warm_start: bool = True, max_iter: int = 25):
         if ndof not in (3, 6):
             raise ValueError(f'ndof must be 3 (point mass) or 6 (rigid platform), got {ndof}')
         self.n_cables, self.ndof = int(n_cables), int(ndof)
@@ -149,6 +162,9 @@ class TensionSolver:
         self.tolerance_n = 1e-7 * scale if tolerance_n is None else float(tolerance_n)
         if not self.tolerance_n > 0.0:
             raise ValueError(f'tolerance_n must be positive, got {tolerance_n}')
+        # proxsuite's stopping test ignores complementarity: a box-active tension may stop
+        # ~100 eps from its bound. 1e-12 scale keeps the answer within ~1e-7 scale of the optimum.
+        self._eps = min(1e-12 * scale, 1e-2 * self.tolerance_n)
         self.warm_start = bool(warm_start)
         self.max_iter = int(max_iter)
         self._lower = np.full(self.n_cables, self.t_min_n)
@@ -161,14 +177,15 @@ class TensionSolver:
         """Forget the previous solution: the next solve starts cold."""
         self._qp = None
 
-    def _new_qp(self, structure_matrix: np.ndarray, wrench: np.ndarray):
+    def _new_qp(self, structure_matrix: np.ndarray, wrench: np.ndarray, max_iter: int):
         qp = _proxqp.dense.QP(self.n_cables, self.ndof, 0, True)
         settings = qp.settings
-        settings.eps_abs = 0.01 * self.tolerance_n
+        settings.eps_abs = self._eps
         settings.eps_rel = 0.0
-        settings.max_iter = self.max_iter
-        settings.max_iter_in = self.max_iter
+        settings.max_iter = max_iter
+        settings.max_iter_in = max_iter
         settings.verbose = False
+        settings.initial_guess = _proxqp.EQUALITY_CONSTRAINED_INITIAL_GUESS
         qp.init(self.hessian, self.linear, structure_matrix, wrench, None, None, None,
                 self._lower, self._upper)
         return qp
@@ -183,24 +200,59 @@ class TensionSolver:
                              f'wrench ({self.ndof},), got {wt.shape} and {w.shape}')
         # Necessary condition, per wrench component: reachable range of W^T T over the box.
         # NaN or inf anywhere in W^T or w makes the test fail too, so it is the finite check.
-        excess = np.abs(w - wt @ self._mid) - np.abs(wt) @ self._half
+        with np.errstate(invalid='ignore'):
+            excess = np.abs(w - wt @ self._mid) - np.abs(wt) @ self._half
         if not excess.max() <= self.tolerance_n:
+            self._qp = None
             if not (np.isfinite(wt).all() and np.isfinite(w).all()):
                 what = 'structure matrix' if not np.isfinite(wt).all() else 'wrench'
                 return TensionResult(np.full(self.n_cables, np.nan), 'not_finite', False,
                                      np.nan, 0, f'{what} is not finite',
                                      time.perf_counter() - start, self.tolerance_n)
-            return self._failed(wt, w, 'infeasible', 0, start, self._row_reason(wt, w, excess))
+            tension = closest_tensions(wt, w, self.t_min_n, self.t_max_n, self.tolerance_n)
+            return TensionResult(tension, 'infeasible', False,
+                                 float(np.abs(wt @ tension - w).max()), 0,
+                                 self._row_reason(wt, w, excess), time.perf_counter() - start,
+                                 self.tolerance_n)
 
         qp = self._qp
-        if qp is None:
-            qp = self._new_qp(wt, w)
-            qp.settings.initial_guess = _proxqp.EQUALITY_CONSTRAINED_INITIAL_GUESS
-        else:
+        if qp is not None:  # warm: update W^T and w, start from the previous solution
             qp.update(A=wt, b=w)
+            result = self._run(qp, wt, w, start, 0)
+            if result.feasible:
+                return result
+            # a warm start far from the answer (a jump in pose) can stall: go cold once
+            result = self._run(self._new_qp(wt, w, self.max_iter), wt, w, start,
+                               result.iterations)
+        else:
+            result = self._run(self._new_qp(wt, w, self.max_iter), wt, w, start, 0)
+        if result.feasible:
+            return result
+        # Failure: never trust the solver alone. The closest tensions in the box decide whether
+        # the wrench is out of reach or proxsuite just stopped early (then retry, cold, longer).
+        tension = closest_tensions(wt, w, self.t_min_n, self.t_max_n, self.tolerance_n)
+        residual = float(np.abs(wt @ tension - w).max())
+        if residual > self.tolerance_n:
+            return TensionResult(tension, 'infeasible', False, residual, result.iterations,
+                                 self._residual_reason(wt, w, residual),
+                                 time.perf_counter() - start, self.tolerance_n)
+        first = result
+        result = self._run(self._new_qp(wt, w, 4 * self.max_iter), wt, w, start,
+                           first.iterations)
+        if result.feasible:
+            return result
+        return TensionResult(tension, result.status if result.status != 'infeasible'
+                             else 'max_iter', False, residual, result.iterations,
+                             f'tension QP stopped ({first.status}, then {result.status}) after '
+                             f'{result.iterations} iterations although the wrench {_fmt(w)} is '
+                             f'reachable; returned tensions meet the constraints but are not '
+                             f'optimal', time.perf_counter() - start, self.tolerance_n)
+
+    def _run(self, qp, wt, w, start, previous_iterations) -> TensionResult:
+        """Solve ``qp`` and check its answer against Eqs. 11-12; keep it for warm starts."""
         qp.solve()
         info = qp.results.info
-        iterations = int(info.iter)
+        iterations = previous_iterations + int(info.iter)
         status = _STATUS.get(info.status, str(info.status))
         x = qp.results.x
         if status == 'solved':
@@ -213,27 +265,9 @@ class TensionSolver:
                     self._qp = qp
                 return TensionResult(tension, 'solved', True, residual, iterations, '',
                                      time.perf_counter() - start, self.tolerance_n)
-            status = 'infeasible'
-        return self._failed(wt, w, status, iterations, start)
-
-    def _failed(self, wt, w, status, iterations, start, reason='') -> TensionResult:
-        """Result of a failed solve: closest tensions in the box, and the reason in one line."""
+            status = 'infeasible'  # 'solved' by proxsuite but outside Eqs. 11-12
         self._qp = None  # the next solve starts cold: a failed iterate is a poor warm start
-        tension = closest_tensions(wt, w, self.t_min_n, self.t_max_n, self.tolerance_n)
-        residual = float(np.abs(wt @ tension - w).max())
-        if not reason:
-            if residual > self.tolerance_n:
-                status = 'infeasible'
-                reason = self._residual_reason(wt, w, residual)
-            elif status == 'infeasible':  # the solver's 'infeasible' was not confirmed
-                status = 'max_iter'
-                reason = (f'tension QP failed although the wrench {_fmt(w)} is reachable '
-                          f'(closest tensions leave {residual:.3g})')
-            else:
-                reason = (f'tension QP stopped ({status}) after {iterations} iterations; the '
-                          f'wrench {_fmt(w)} is reachable, returned tensions are feasible but '
-                          f'not optimal')
-        return TensionResult(tension, status, False, residual, iterations, reason,
+        return TensionResult(x, status, False, np.nan, iterations, status,
                              time.perf_counter() - start, self.tolerance_n)
 
     def _units(self) -> str:
@@ -257,19 +291,24 @@ class TensionSolver:
         u, sing, _ = np.linalg.svd(wt)
         rank = int(np.sum(sing > 1e-9 * max(1.0, sing[0])))
         if rank < self.ndof:
-            text += (f'; the structure matrix has rank {rank} < {self.ndof}: the cables cannot '
-                     f'act along {_fmt(u[:, rank])}')
+            null = u[:, rank:]
+            unreachable = null @ (null.T @ w)
+            size = float(np.linalg.norm(unreachable))
+            text += f'; the structure matrix has rank {rank} < {self.ndof}'
+            if size > self.tolerance_n:
+                text += (f' and the wrench has a part {size:.4g} along {_fmt(unreachable / size)} '
+                         f'that no tensions can produce')
         return text
 
 
 def closest_tensions(structure_matrix, wrench, t_min_n, t_max_n, tolerance_n=1e-4) -> np.ndarray:
-    """Tensions (n,) N in [T_min, T_max] whose wrench is closest to w (always exists):
+    """Tensions (n,) N in [T_min, T_max] whose wrench is closest to w; they always exist.
 
         minimise 1/2 |W^T T - w|^2 + eps/2 |T - T_mid|^2  subject to  T_min <= T_i <= T_max,
 
     with a tiny eps (1e-12 of the Hessian's scale) that picks one answer when W^T is wide.
-    Equal to the tension distribution's feasible set test: the residual is ~0 exactly when
-    Eq. 12 has a solution in the box.
+    Doubles as an exact feasibility test of Eqs. 11-12: the residual max |W^T T - w| is ~0
+    (below ``tolerance_n``, N) exactly when Eq. 12 has a solution in the box.
     """
     wt = np.asarray(structure_matrix, dtype=float)
     w = np.asarray(wrench, dtype=float).reshape(-1)
@@ -306,8 +345,9 @@ def solve_tensions_qpsolvers(structure_matrix, wrench, t_min_n, t_max_n, weights
                              linear=None, solver='proxqp') -> TensionResult:
     """The same QP through ``qpsolvers`` (bounds as ``lb``/``ub``), for cross-checks only.
 
-    Uses ``qpsolvers.solve_problem`` with ``solver`` (must be in
-    ``qpsolvers.available_solvers``); no warm start, no failure diagnosis.
+    ``solver`` must be in ``qpsolvers.available_solvers``; with ``'proxqp'`` the sparse ProxQP
+    backend is used, where the bounds become general inequality rows: a different code path from
+    :class:`TensionSolver`'s dense QP with native box constraints. No warm start, no diagnosis.
     """
     import qpsolvers
 
@@ -316,14 +356,19 @@ def solve_tensions_qpsolvers(structure_matrix, wrench, t_min_n, t_max_n, weights
     n = wt.shape[1]
     c_mat, c_vec = _objective(n, weights, linear)
     lo, hi = _box(n, t_min_n, t_max_n)
+    tolerance = 1e-7 * max(1.0, abs(lo), abs(hi))
     problem = qpsolvers.Problem(c_mat, c_vec, None, None, wt, w, np.full(n, lo), np.full(n, hi))
+    options = {'backend': 'sparse', 'eps_abs': 1e-5 * tolerance} if solver == 'proxqp' else {}
     start = time.perf_counter()
-    options = {'eps_abs': 1e-9 * max(1.0, abs(lo), abs(hi))} if solver == 'proxqp' else {}
     solution = qpsolvers.solve_problem(problem, solver=solver, **options)
     elapsed = time.perf_counter() - start
     if not solution.found or solution.x is None:
         return TensionResult(np.full(n, np.nan), 'infeasible', False, np.nan, 0,
-                             f'qpsolvers/{solver} found no solution', elapsed)
-    tension = np.asarray(solution.x)
+                             f'qpsolvers/{solver} found no solution', elapsed, tolerance)
+    tension = np.asarray(solution.x, dtype=float)
     residual = float(np.abs(wt @ tension - w).max())
-    return TensionResult(tension, 'solved', True, residual, 0, '', elapsed)
+    feasible = bool(residual <= tolerance and tension.min() >= lo - tolerance
+                    and tension.max() <= hi + tolerance)
+    return TensionResult(tension, 'solved' if feasible else 'infeasible', feasible, residual, 0,
+                         '' if feasible else f'qpsolvers/{solver} answer violates Eqs. 11-12',
+                         elapsed, tolerance)
