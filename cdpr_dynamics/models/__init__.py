@@ -5,12 +5,15 @@ Adding a model means one file and one line in :data:`REGISTRY`.
 """
 from __future__ import annotations
 
-from cdpr_dynamics.models import dsm, fem, spring
+from cdpr_dynamics.models import catenary, dsm, fem, fem_sag, spring
 from cdpr_dynamics.models.base import CableAssembly, CableSet
 
 REGISTRY = {
     'spring': spring.build,
     'fem': fem.build,
+    'catenary': catenary.build,
+    'catenary_exact': catenary.build_exact,
+    'fem_sag': fem_sag.build,
     'dsm': dsm.build,
 }
 

@@ -1,0 +1,161 @@
+"""``fem_sag``: the FEM linearised about each cable's sagged static shape.
+
+Each cable is the elastic catenary of ``catenary_exact`` (:func:`catenary.solve`: end tension
+T_i, chord closed exactly) cut into n elements of equal unstrained length l0 = L0/n. The nodes
+lie on that curve; element e is the straight truss between consecutive nodes, with chord length
+l_e, direction e_e and the catenary tension T_e at its middle. Its tangent stiffness and
+consistent mass (mu = gamma/g per unstrained length) are
+
+    K_e = EA/l0 e_e e_e^T + T_e/l_e (I - e_e e_e^T),    M_e = mu l0/6 [2I I; I 2I],
+
+the exact linearisation of a stretched straight element. A chain of such elements statically
+condensed onto its end has the flexibility sum_e K_e^-1 = sum_e [l0/EA e e^T + l_e/T_e
+(I - e e^T)], a midpoint rule of the catenary's integral of (I/EA + (I - t t^T)/T) d sigma: it
+converges to ``catenary_exact``'s 3x3 stiffness as n^-2. With the weight -> 0 it is ``fem``
+except for the axial term EA/l0 = (EA + T)/l instead of the paper's EA/l (and the mass of the
+unstrained length): a relative T/EA.
+
+The directions differ element to element, so the 3x3 blocks do not decouple: the end dynamic
+stiffness eliminates the chain from the anchor, element by element, in flexibility form
+(:func:`series_end_stiffness`: exact like the block Schur recursion S_k = D_k - O^T S^-1 O, but
+without its loss of about EA/T digits), vectorised over frequencies and cables. Cables without
+a taut catenary (slack, no solution) are replaced by a straight chain at a finite placeholder
+tension and the assembly is invalid with a warning.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from cdpr_dynamics.models import catenary
+from cdpr_dynamics.models.base import CableAssembly, CableSet, ChainBlocks
+
+
+_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))   # symmetric 3x3 as 6 components
+
+
+def _sym_inverse_parts(a):
+    """Adjugate (6 components) and determinant of symmetric 3x3 matrices given as components."""
+    a00, a01, a02, a11, a12, a22 = a
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    adj = (c00, c01, c02, a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01)
+    return adj, a00 * c00 + a01 * c01 + a02 * c02
+
+
+def _sym_product(p, q):
+    """Components of p q for commuting symmetric 3x3 p, q (so that p q is symmetric)."""
+    p00, p01, p02, p11, p12, p22 = p
+    q00, q01, q02, q11, q12, q22 = q
+    return (p00 * q00 + p01 * q01 + p02 * q02, p00 * q01 + p01 * q11 + p02 * q12,
+            p00 * q02 + p01 * q12 + p02 * q22, p01 * q01 + p11 * q11 + p12 * q12,
+            p01 * q02 + p11 * q12 + p12 * q22, p02 * q02 + p12 * q12 + p22 * q22)
+
+
+def series_end_stiffness(ee, axial, transverse, mass, lam) -> np.ndarray:
+    """End dynamic stiffness of chains of straight elements (anchor fixed), in series form.
+
+    Element j of a cable has stiffness k_j = a e_j e_j^T + b_j (I - e_j e_j^T) and consistent
+    mass m [2I I; I 2I] (m = mu l0/6); ``ee`` (6, n, ncab) are the components of e_j e_j^T,
+    ``axial`` a (ncab,), ``transverse`` b (n, ncab), ``mass`` m (ncab,), ``lam`` (nl,).
+
+    With c = lam m, condensing the chain from the anchor element by element is, in the
+    flexibility G = (R - 3c I)^-1 of the part already condensed (R its end stiffness),
+
+        G_0 = 0,   P = G_{j-1} + (k_j + c I)^-1,   G_j = P (I - 6 c P)^-1,   S = G_n^-1 + 3 c I,
+
+    where (k + c I)^-1 = e e^T/(a + c) + (I - e e^T)/(b + c) needs no solve. At lam = 0 this is
+    the sum of the element flexibilities: no cancellation between the stiff axial and the soft
+    transverse terms, unlike the stiffness form S_k = D_k - O^T S_{k-1}^-1 O (which loses about
+    EA/T digits). Result (nl, ncab, 3, 3), real for real ``lam``, complex otherwise.
+    """
+    lam = np.asarray(lam)
+    dtype = float if np.isrealobj(lam) else complex
+    c = lam.astype(dtype).reshape(-1, 1) * mass[None, :]                  # (nl, ncab)
+    g = (0.0,) * 6
+    for j in range(ee.shape[1]):
+        beta = 1.0 / (transverse[j] + c)
+        delta = 1.0 / (axial + c) - beta
+        p = [g[k] + delta * ee[k, j] for k in range(6)]
+        for k in (0, 3, 5):
+            p[k] = p[k] + beta
+        q = [-6.0 * c * pk for pk in p]
+        for k in (0, 3, 5):
+            q[k] = q[k] + 1.0
+        adj, det = _sym_inverse_parts(q)
+        g = tuple(v / det for v in _sym_product(p, adj))
+    adj, det = _sym_inverse_parts(g)
+    out = np.empty(c.shape + (3, 3), dtype=dtype)
+    for v, (i, k) in zip(adj, _UPPER):
+        out[..., i, k] = out[..., k, i] = v / det
+    for i in range(3):
+        out[..., i, i] += 3.0 * c
+    return out
+
+
+def node_positions(state: catenary.CatenaryState, cables: CableSet, n: int) -> np.ndarray:
+    """Points of each cable relative to its platform attachment, (ncab, n + 1, 3).
+
+    Point 0 is the anchor, point n the platform end; point k at unstrained arc length
+    L0 (n - k)/n from the platform end, on the elastic catenary.
+    """
+    up, gamma = catenary.up_and_weight(cables)
+    sigma = state.unstrained_length_m[:, None] * (n - np.arange(n + 1))[None, :] / n
+    force = np.broadcast_to(state.force_n[:, None, :], sigma.shape + (3,))
+    return -catenary.end_position(force, sigma, cables.ea_n, gamma, up)
+
+
+def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = None):
+    """The chains on the sagged shapes (straight where the catenary is invalid).
+
+    Returns (ChainBlocks, element data for :func:`series_end_stiffness`, CatenaryState).
+    """
+    state = catenary.solve(cables) if state is None else state
+    up, gamma = catenary.up_and_weight(cables)
+    chord = np.asarray(cables.chord_m, dtype=float)
+    with np.errstate(all='ignore'):          # invalid cables: replaced just below
+        points = node_positions(state, cables, n)
+    straight = chord[:, None, :] * ((n - np.arange(n + 1)) / n)[None, :, None]
+    points = np.where(state.valid[:, None, None], points, straight)
+    d = np.diff(points, axis=1)                                       # (ncab, n, 3)
+    chord_e = np.linalg.norm(d, axis=2)
+    e = d / chord_e[..., None]
+    l0 = state.unstrained_length_m / n                                # (ncab,)
+    sigma_mid = l0[:, None] * (n - 0.5 - np.arange(n))[None, :]
+    t_mid = np.linalg.norm(state.force_n[:, None, :] - gamma * sigma_mid[..., None] * up, axis=2)
+    t_mid = np.where(state.valid[:, None], t_mid, catenary.placeholder_tension(cables)[:, None])
+    ee = e[..., :, None] * e[..., None, :]
+    ke = (cables.ea_n / l0)[:, None, None, None] * ee \
+        + (t_mid / chord_e)[..., None, None] * (np.eye(3) - ee)        # (ncab, n, 3, 3)
+    k_diag = ke.copy()
+    k_diag[:, :-1] += ke[:, 1:]
+    k_off = -ke[:, 1:]
+    m0 = (cables.mass_per_length_kg_m * l0 / 6.0)[:, None, None, None] * np.eye(3)
+    m_diag = np.repeat(4.0 * m0, n, axis=1)
+    m_diag[:, -1] = 2.0 * m0[:, 0]
+    m_off = np.repeat(m0, n - 1, axis=1)
+    elements = (np.stack([(e[..., i] * e[..., k]).T for i, k in _UPPER]),
+                np.full(len(l0), cables.ea_n) / l0, (t_mid / chord_e).T,
+                cables.mass_per_length_kg_m * l0 / 6.0)
+    return ChainBlocks(k_diag, k_off, m_diag, m_off), elements, state
+
+
+def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
+    """``fem_sag`` with ``elements_per_cable`` elements per cable."""
+    n = int(elements_per_cable)
+    if n < 1:
+        raise ValueError('fem_sag needs at least one element per cable')
+    blocks, elements, state = sag_chains(cables, n)
+    warnings = tuple(state.reasons)
+    if warnings:
+        warnings += ('fem_sag: the cables above are modelled as straight chains at a placeholder '
+                     'tension max(T, gamma L, 1e-9 EA); the results are not valid',)
+
+    def end_stiffness(lam):
+        lam = np.asarray(lam)
+        if np.iscomplexobj(lam) and not np.any(lam.imag):
+            lam = lam.real                   # undamped: the real recursion is twice as fast
+        return series_end_stiffness(*elements, lam).astype(complex, copy=False)
+
+    return CableAssembly('fem_sag', n, end_stiffness, -state.force_n, blocks,
+                         valid=bool(np.all(state.valid)), warnings=warnings)
