@@ -107,6 +107,23 @@ def damping_warnings(damping: Damping, frequency_hz: np.ndarray) -> list[str]:
             f'{frequency_hz[np.argmax(ratios)]:.3g} Hz)']
 
 
+STRAIGHT_METHODS = ('spring', 'fem', 'dsm')
+
+
+def sag_warnings(settings: Settings, method: str, sag_parameter: np.ndarray) -> list[str]:
+    """Warn when a straight model ignores sag that matters at ``model.tolerance``.
+
+    Irvine's effective modulus E/(1 + lambda^2/12) gives the axial stiffness a straight cable
+    model overestimates by about lambda^2/12 (Irvine, Cable Structures, 1981, sec. 3.4).
+    """
+    worst = float(np.max(sag_parameter, initial=0.0))
+    if method not in STRAIGHT_METHODS or not worst / 12.0 > settings.tolerance:
+        return []
+    return [f'sag: lambda^2 up to {worst:.3g}; {method} ignores sag and overestimates the axial '
+            f'stiffness by ~{100 * min(worst / 12.0, 1e4):.3g} % (> model.tolerance '
+            f'{100 * settings.tolerance:g} %): use catenary_exact or fem_sag']
+
+
 FRF_ARRAYS = ('frequency_hz', 'amplitude_x_m', 'amplitude_y_m', 'amplitude_z_m', 'phase_x_rad',
               'phase_y_rad', 'phase_z_rad', 'log10_amplitude_z', 'natural_frequencies_hz')
 

@@ -18,9 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, Stopwatch, build_system,
-                                    damping_for, damping_warnings, equilibrium, frf_arrays, safe)
+                                    damping_for, damping_warnings, equilibrium, frf_arrays, safe,
+                                    sag_warnings)
 from cdpr_dynamics.config import METHODS, ConfigError, Settings, load_settings
 from cdpr_dynamics.dynamics import natural_frequencies, tension_change, time_history
+from cdpr_dynamics.models.catenary import sag_parameter
 
 
 def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration_s: float,
@@ -30,7 +32,8 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
     with watch('assembly'):
         system = safe(build_system, settings, eq)
     assembly = system.assembly
-    warnings = list(eq.tensions.reason and [eq.tensions.reason] or []) + list(assembly.warnings)
+    sag = sag_parameter(eq.cables)
+    warnings = list(assembly.warnings) + sag_warnings(settings, assembly.method, sag)
     if not assembly.valid:
         raise AnalysisError(f'method {assembly.method} fails for this scene: '
                             + '; '.join(assembly.warnings))
@@ -73,6 +76,7 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
         'dofs': system.dofs,
         'tensions_n': eq.tensions.tension_n.tolist(),
         'cable_lengths_m': eq.geometry.length_m.tolist(),
+        'sag_parameter': sag.tolist(),
         'natural_frequencies_hz': freqs.tolist(),
         'damping': {'mass_factor': damping.mass_factor,
                     'stiffness_factor': damping.stiffness_factor,
