@@ -118,3 +118,18 @@ def test_analyze_without_ament_prefix_path_finds_the_paper_config(tmp_path):
                          capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     assert json.loads((tmp_path / 'a.json').read_text())['dofs'] == 3
+
+
+def test_sag_parameter_reported_and_straight_models_warned_on_slack_ish_cables(tmp_path):
+    """Low tensions make lambda^2 large: straight models get a sag warning, catenary not."""
+    config = write_config(tmp_path, **{'tension.min_n': 10.0})
+    docs = {}
+    for method in ('fem', 'catenary_exact'):
+        out = analyze('--config', config, '--method', method, '--elements', '4',
+                      '--json', tmp_path / f'{method}.json', '--duration', '0.05')
+        assert out.returncode == 0, out.stderr
+        docs[method] = json.loads((tmp_path / f'{method}.json').read_text())
+    sag = np.array(docs['fem']['sag_parameter'])
+    assert sag.shape == (8,) and sag.max() > 12 * 0.01
+    assert any(w.startswith('sag: lambda^2') for w in docs['fem']['warnings'])
+    assert not any(w.startswith('sag:') for w in docs['catenary_exact']['warnings'])
