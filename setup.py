@@ -28,6 +28,7 @@ setup(
             'cdpr_analyze = cdpr_dynamics.cli.analyze:main',
             'cdpr_bench = cdpr_dynamics.cli.bench:main',
             'cdpr_record = cdpr_dynamics.cli.record:main',
+            'cdpr_demo = cdpr_dynamics.cli.demo:main',
         ],
     },
 )

@@ -22,7 +22,8 @@ from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, build_system, da
                                     equilibrium, new_tension_solver)
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.dynamics import DynamicsError, Newmark, PlatformSystem
-from cdpr_dynamics.robot import quaternion_to_matrix
+from cdpr_dynamics.feasibility import WrenchSet, cable_crossing
+from cdpr_dynamics.robot import GeometryError, geometry, quaternion_to_matrix, required_wrench
 
 FALLBACK_METHOD = 'spring'
 MAX_GAP_S = 1.0
@@ -54,6 +55,7 @@ class LivePredictor:
         self.position_m = None
         self.rotation = None
         self.last_update = PoseUpdate(False)
+        self.wrench_set: WrenchSet | None = None
         self._t_s: float | None = None
         self._remainder_s = 0.0
         self._load = None
@@ -79,6 +81,7 @@ class LivePredictor:
             return PoseUpdate(False, self.last_update.method, self.last_update.dofs)
         timings = {}
         start = time.perf_counter()
+        self._check_cables(position, rotation)
         eq = equilibrium(self.settings, position, rotation, self._solver)
         timings['tensions'] = time.perf_counter() - start
         start = time.perf_counter()
@@ -89,9 +92,36 @@ class LivePredictor:
         timings['factorisation'] = time.perf_counter() - start
         self.eq, self.system, self.position_m, self.rotation = eq, system, position, rotation
         self.integrator = integrator
+        self.wrench_set = None   # built on the first wrench at this state
         self.last_update = PoseUpdate(True, system.assembly.method, system.dofs, timings,
                                       tuple(warnings))
         return self.last_update
+
+    def _check_cables(self, position, rotation) -> None:
+        """Raise :class:`AnalysisError` where cables would cross (clearance: cable diameter).
+
+        Cables of a point mass all end at one point and cannot cross: nothing to check.
+        """
+        robot = self.settings.robot
+        if robot.point_mass:
+            return
+        try:
+            geo = geometry(robot, position, rotation)
+        except GeometryError as exc:
+            raise AnalysisError(str(exc)) from None
+        clearance = 2.0 * np.sqrt(self.settings.cable.area_m2 / np.pi)
+        reason = cable_crossing(robot.anchors_m, geo.position_m + geo.lever_m, clearance)
+        if reason:
+            raise AnalysisError(reason)
+
+    def wrench_reason(self, force_n, moment_nm=(0.0, 0.0, 0.0)) -> str:
+        """Why the cables cannot hold this external wrench at the current pose, or ''."""
+        if self.wrench_set is None:
+            s = self.settings
+            self.wrench_set = WrenchSet(self.eq.geometry.structure_matrix, s.tension_min_n,
+                                        s.tension_max_n, required_wrench(
+                                            s.robot, s.external_force_n, s.external_moment_nm))
+        return self.wrench_set.reason(force_n, moment_nm)
 
     def _build(self, eq: Equilibrium):
         """The configured model, or the spring fallback (with a warning) where it is invalid."""

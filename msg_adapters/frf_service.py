@@ -1,0 +1,201 @@
+"""The ``frequency_response`` service (rcl_interfaces/srv/GetParameters, SPEC section 5).
+
+Request ``names``: the arrays wanted (:data:`ARRAYS`) mixed with ``key=value`` overrides of the
+sweep for this call (:data:`OVERRIDES`). Response ``values``: one ParameterValue per name that
+is not an override, in request order: DOUBLE_ARRAY with the array, or STRING with the reason
+where the name is unknown or the computation failed.
+
+Server side: :func:`parse_request`, :func:`settings_changes`, :func:`pack_response`.
+Client side: :func:`request_message`, :func:`unpack_response` and the blocking helper
+:func:`call_frequency_response`, which returns numpy arrays and raises with the reason.
+"""
+from __future__ import annotations
+
+import array
+import math
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field
+
+import numpy as np
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import GetParameters
+
+from cdpr_dynamics.analysis import FRF_ARRAYS
+
+SERVICE = 'frequency_response'
+ARRAYS = FRF_ARRAYS
+#: override key -> type of its value; force_* set one component of frf.force_n.
+OVERRIDES = {'method': str, 'elements_per_cable': int, 'f_min_hz': float, 'f_max_hz': float,
+             'n_points': int, 'force_x_n': float, 'force_y_n': float, 'force_z_n': float}
+
+
+class FrequencyResponseError(RuntimeError):
+    """The service could not be reached or answered with a reason; ``str(exc)`` says which."""
+
+
+@dataclass
+class FrfRequest:
+    """A parsed request: array names in order, overrides, and the first override error."""
+
+    names: list[str] = field(default_factory=list)
+    overrides: dict = field(default_factory=dict)
+    error: str = ''
+
+    def key(self) -> tuple:
+        """Hashable identity of the overrides (for caching results)."""
+        return tuple(sorted(self.overrides.items()))
+
+
+def _parse_value(key: str, text: str):
+    kind = OVERRIDES[key]
+    text = text.strip()
+    if kind is str:
+        if not text:
+            raise ValueError(f'override {key} has an empty value')
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f'override {key}={text!r} is not a number') from None
+    if not math.isfinite(value):
+        raise ValueError(f'override {key}={text} is not finite')
+    if kind is int:
+        if not value.is_integer():
+            raise ValueError(f'override {key}={text} is not an integer')
+        return int(value)
+    return value
+
+
+def parse_request(names) -> FrfRequest:
+    """Split request names into array names and ``key=value`` overrides (checked for type)."""
+    request = FrfRequest()
+    for entry in names:
+        if '=' not in entry:
+            request.names.append(entry)
+            continue
+        key, text = (part.strip() for part in entry.split('=', 1))
+        if key not in OVERRIDES:
+            request.error = request.error or (f'unknown override {key!r}; known: '
+                                              f'{", ".join(OVERRIDES)}')
+            continue
+        try:
+            request.overrides[key] = _parse_value(key, text)
+        except ValueError as exc:
+            request.error = request.error or str(exc)
+    return request
+
+
+def settings_changes(overrides: dict, frf_force_n) -> dict:
+    """Keyword arguments of ``Settings.replace`` for the overrides of one call."""
+    changes = {k: v for k, v in overrides.items() if not k.startswith('force_')}
+    force = np.array(frf_force_n, dtype=float)
+    for axis, key in enumerate(('force_x_n', 'force_y_n', 'force_z_n')):
+        if key in overrides:
+            force[axis] = overrides[key]
+    if any(k.startswith('force_') for k in overrides):
+        changes['frf_force_n'] = force
+    return changes
+
+
+def double_array_value(values) -> ParameterValue:
+    """ParameterValue of type DOUBLE_ARRAY (fast path through ``array.array``)."""
+    data = array.array('d')
+    data.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+    return ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=data)
+
+
+def string_value(text: str) -> ParameterValue:
+    """ParameterValue of type STRING."""
+    return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=text)
+
+
+def pack_response(names, arrays: dict | None, error: str = '',
+                  response: GetParameters.Response | None = None) -> GetParameters.Response:
+    """One value per array name: the array, or a STRING with ``error`` or 'unknown ...'."""
+    response = response or GetParameters.Response()
+    values = []
+    for name in names:
+        if name not in ARRAYS:
+            values.append(string_value(f'unknown array {name!r}; known: {", ".join(ARRAYS)}; '
+                                       f'overrides: {", ".join(k + "=..." for k in OVERRIDES)}'))
+        elif error or arrays is None:
+            values.append(string_value(error or 'not computed'))
+        else:
+            values.append(double_array_value(arrays[name]))
+    response.values = values
+    return response
+
+
+def request_message(names=None, overrides: dict | None = None) -> GetParameters.Request:
+    """A request for ``names`` (default: every array) with ``key=value`` overrides."""
+    names = list(ARRAYS if names is None else names)
+    for key, value in (overrides or {}).items():
+        names.append(f'{key}={value!r}' if isinstance(value, float) else f'{key}={value}')
+    return GetParameters.Request(names=names)
+
+
+def unpack_response(request: GetParameters.Request, response: GetParameters.Response):
+    """``(arrays, reasons)``: name -> float64 array, name -> reason string."""
+    names = [n for n in request.names if '=' not in n]
+    if len(response.values) != len(names):
+        raise FrequencyResponseError(f'frequency_response returned {len(response.values)} '
+                                     f'values for {len(names)} names')
+    arrays, reasons = {}, {}
+    for name, value in zip(names, response.values):
+        if value.type == ParameterType.PARAMETER_DOUBLE_ARRAY:
+            arrays[name] = np.array(value.double_array_value, dtype=float)
+        elif value.type == ParameterType.PARAMETER_STRING:
+            reasons[name] = value.string_value
+        else:
+            reasons[name] = f'unexpected parameter type {value.type}'
+    return arrays, reasons
+
+
+_CLIENTS: 'weakref.WeakKeyDictionary' = weakref.WeakKeyDictionary()
+
+
+def _client(node, service: str):
+    clients = _CLIENTS.setdefault(node, {})
+    if service not in clients:
+        clients[service] = node.create_client(GetParameters, service)
+    return clients[service]
+
+
+def call_frequency_response(node, names=None, overrides: dict | None = None,
+                            timeout_s: float = 10.0, service: str = SERVICE,
+                            spin: bool = True) -> dict[str, np.ndarray]:
+    """Call the service and return ``{name: array}``; raise FrequencyResponseError on errors.
+
+    ``names``: arrays wanted (default all of :data:`ARRAYS`); ``overrides``: e.g.
+    ``{'method': 'spring', 'n_points': 100}``. ``spin=True`` spins ``node`` here until the
+    answer arrives (a plain script); ``spin=False`` only waits, for a node that an executor
+    spins in another thread. Never call it from a callback of the executor spinning ``node``.
+    """
+    client = _client(node, service)
+    deadline = time.monotonic() + timeout_s
+    if not client.wait_for_service(timeout_sec=timeout_s):
+        raise FrequencyResponseError(f'service {service} not available after {timeout_s:g} s')
+    request = request_message(names, overrides)
+    future = client.call_async(request)
+    remaining = max(0.0, deadline - time.monotonic())
+    if spin:
+        import rclpy
+        rclpy.spin_until_future_complete(node, future, executor=node.executor,
+                                         timeout_sec=remaining)
+    else:
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        done.wait(remaining)
+    if not future.done():
+        client.remove_pending_request(future)
+        raise FrequencyResponseError(f'service {service} did not answer within {timeout_s:g} s')
+    if future.exception() is not None:
+        raise FrequencyResponseError(f'service {service} failed: {future.exception()}')
+    arrays, reasons = unpack_response(request, future.result())
+    if reasons:
+        raise FrequencyResponseError('; '.join(f'{k}: {v}' for k, v in reasons.items())
+                                     if len(set(reasons.values())) > 1
+                                     else next(iter(reasons.values())))
+    return arrays

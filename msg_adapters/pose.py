@@ -1,0 +1,56 @@
+"""geometry_msgs/PoseStamped <-> position (3,) m and quaternion (4,) qx qy qz qw."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+
+from msg_adapters.validation import (InvalidMessage, check_finite, check_frame, check_order,
+                                     stamp_to_ns)
+
+
+@dataclass(frozen=True)
+class PoseInput:
+    """A checked pose: stamp (ns), position (3,) m, unit quaternion (4,) qx qy qz qw."""
+
+    stamp_ns: int
+    position_m: np.ndarray
+    quaternion: np.ndarray
+
+
+def read_pose(msg: PoseStamped, frame_id: str, quaternion_tolerance: float = 1e-3,
+              last_stamp_ns: int | None = None) -> PoseInput:
+    """Check a pose message and convert it; raises :class:`InvalidMessage` with the reason.
+
+    Rejected: a frame other than ``frame_id``, a stamp older than ``last_stamp_ns``, NaN or
+    infinite values, a quaternion whose norm is off 1 by more than ``quaternion_tolerance``
+    (within it the quaternion is normalised).
+    """
+    p, q = msg.pose.position, msg.pose.orientation
+    position = (p.x, p.y, p.z)
+    quaternion = (q.x, q.y, q.z, q.w)
+    check_finite(position, 'pose position')
+    check_finite(quaternion, 'pose orientation')
+    norm = math.sqrt(sum(v * v for v in quaternion))
+    if abs(norm - 1.0) > quaternion_tolerance:
+        raise InvalidMessage(f'pose orientation is not a unit quaternion: norm {norm:.6g} '
+                             f'(tolerance {quaternion_tolerance:g})', 'quaternion')
+    check_frame(msg.header, frame_id, 'pose')
+    stamp = stamp_to_ns(msg.header.stamp)
+    check_order(stamp, last_stamp_ns, 'pose')
+    return PoseInput(stamp, np.array(position), np.array(quaternion) / norm)
+
+
+def pose_message(position_m, quaternion=(0.0, 0.0, 0.0, 1.0), frame_id: str = 'world',
+                 stamp=None) -> PoseStamped:
+    """A PoseStamped from arrays (``stamp``: builtin_interfaces/Time, default zero)."""
+    msg = PoseStamped()
+    msg.header.frame_id = frame_id
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, position_m)
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = map(float, quaternion)
+    return msg

@@ -1,0 +1,48 @@
+"""geometry_msgs/WrenchStamped <-> force (3,) N and moment (3,) N m."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from geometry_msgs.msg import WrenchStamped
+
+from msg_adapters.validation import check_finite, check_frame, check_order, stamp_to_ns
+
+
+@dataclass(frozen=True)
+class WrenchInput:
+    """A checked wrench: stamp (ns), force (3,) N, moment (3,) N m about the centroid."""
+
+    stamp_ns: int
+    force_n: np.ndarray
+    moment_nm: np.ndarray
+
+
+def read_wrench(msg: WrenchStamped, frame_id: str,
+                last_stamp_ns: int | None = None) -> WrenchInput:
+    """Check a wrench message and convert it; raises :class:`InvalidMessage` with the reason.
+
+    Rejected: NaN or infinite values, a frame other than ``frame_id`` (the wrench is taken in
+    the robot frame, no transform is applied), a stamp older than ``last_stamp_ns``.
+    """
+    f, m = msg.wrench.force, msg.wrench.torque
+    force = (f.x, f.y, f.z)
+    moment = (m.x, m.y, m.z)
+    check_finite(force + moment, 'wrench')
+    check_frame(msg.header, frame_id, 'wrench')
+    stamp = stamp_to_ns(msg.header.stamp)
+    check_order(stamp, last_stamp_ns, 'wrench')
+    return WrenchInput(stamp, np.array(force), np.array(moment))
+
+
+def wrench_message(force_n, moment_nm=(0.0, 0.0, 0.0), frame_id: str = 'world',
+                   stamp=None) -> WrenchStamped:
+    """A WrenchStamped from arrays (``stamp``: builtin_interfaces/Time, default zero)."""
+    msg = WrenchStamped()
+    msg.header.frame_id = frame_id
+    if stamp is not None:
+        msg.header.stamp = stamp
+    w = msg.wrench
+    w.force.x, w.force.y, w.force.z = map(float, force_n)
+    w.torque.x, w.torque.y, w.torque.z = map(float, moment_nm)
+    return msg

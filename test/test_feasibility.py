@@ -1,0 +1,94 @@
+"""Wrench-feasible set and cable crossing checks against the tension QP and plain geometry."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cdpr_dynamics.config import (default_config_path, load_settings, read_params_file,
+                                  settings_from_params)
+from cdpr_dynamics.feasibility import WrenchSet, cable_crossing
+from cdpr_dynamics.robot import geometry, required_wrench
+from cdpr_dynamics.tensions import TensionSolver
+
+
+def rigid_settings():
+    """The paper's frame with a 0.2 m cube platform: cables to its nearest corners."""
+    flat = read_params_file(default_config_path())
+    anchors = np.array(flat['robot.anchors']).reshape(-1, 3)
+    corners = np.column_stack([np.sign(anchors[:, 0]), np.sign(anchors[:, 1]),
+                               np.where(anchors[:, 2] > 1.0, 1.0, -1.0)]) * 0.1
+    flat['robot.attachments'] = corners.ravel().tolist()
+    flat['robot.inertia_kg_m2'] = [0.2, 0.2, 0.2, 0.0, 0.0, 0.0]
+    return settings_from_params(flat)
+
+
+@pytest.mark.parametrize('rigid', [False, True])
+def test_wrench_set_agrees_with_the_tension_qp(rigid):
+    settings = rigid_settings() if rigid else load_settings()
+    robot = settings.robot
+    rng = np.random.default_rng(3)
+    d = robot.platform_dofs
+    for _ in range(3):
+        p = np.array([0.0, 0.0, 1.25]) + rng.uniform(-0.4, 0.4, 3)
+        rot = Rotation.from_euler('xyz', rng.uniform(-0.05, 0.05, 3)).as_matrix()
+        geo = geometry(robot, p, rot if rigid else None)
+        need = required_wrench(robot)
+        wset = WrenchSet(geo.structure_matrix, settings.tension_min_n, settings.tension_max_n,
+                         need)
+        solver = TensionSolver(robot.n_cables, d, settings.tension_min_n, settings.tension_max_n)
+        # wrenches the cables can hold (tensions inside the box), pushed out by a factor
+        inside = 0
+        for _ in range(150):
+            t = rng.uniform(settings.tension_min_n, settings.tension_max_n, robot.n_cables)
+            cables = geo.structure_matrix @ t
+            for scale in (1.0, rng.uniform(1.0, 2.0)):
+                ext = np.zeros(6)
+                ext[:d] = need - (geo.structure_matrix @ np.full(robot.n_cables, 550.0)
+                                  + scale * (cables - geo.structure_matrix
+                                             @ np.full(robot.n_cables, 550.0)))
+                qp = solver.solve(geo.structure_matrix, need - ext[:d])
+                if abs(wset.margin(ext[:3], ext[3:])) < 1e-6 * settings.tension_max_n:
+                    continue   # on the boundary: either answer is right
+                assert (wset.reason(ext[:3], ext[3:]) == '') == qp.feasible
+                inside += qp.feasible
+        assert inside >= 150
+
+
+def test_wrench_set_reason_is_one_line():
+    settings = load_settings()
+    geo = geometry(settings.robot, [0.0, 0.0, 1.25])
+    wset = WrenchSet(geo.structure_matrix, 100.0, 1000.0, required_wrench(settings.robot))
+    assert wset.reason([0.0, 0.0, 1500.0]) == ''
+    reason = wset.reason([0.0, 0.0, -5000.0])
+    assert reason.startswith('wrench outside the feasible set') and '\n' not in reason
+    assert wset.reason([np.nan, 0.0, 0.0]) == 'wrench is not finite'
+
+
+def test_point_mass_cables_never_cross():
+    settings = load_settings()
+    rng = np.random.default_rng(0)
+    for p in rng.uniform([-1.2, -1.2, 0.05], [1.2, 1.2, 2.45], (50, 3)):
+        geo = geometry(settings.robot, p)
+        assert cable_crossing(settings.robot.anchors_m, geo.position_m + geo.lever_m,
+                              0.008) == ''
+
+
+def test_rotated_platform_crosses_cables():
+    settings = rigid_settings()
+    robot = settings.robot
+    geo = geometry(robot, [0.0, 0.0, 1.25])
+    assert cable_crossing(robot.anchors_m, geo.position_m + geo.lever_m, 0.008) == ''
+    turned = geometry(robot, [0.0, 0.0, 1.25], Rotation.from_euler('z', 180, degrees=True)
+                      .as_matrix())
+    reason = cable_crossing(robot.anchors_m, turned.position_m + turned.lever_m, 0.008)
+    assert reason.startswith('cables ') and ' cross: ' in reason
+
+
+def test_parallel_and_skew_segments():
+    anchors = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]])
+    ends = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    assert cable_crossing(anchors, ends, 0.01) == ''          # parallel, 1 m apart
+    anchors = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.001]])
+    ends = np.array([[1.0, 1.0, 0.0], [0.0, 1.0, 0.001]])     # skew, 1 mm apart mid-span
+    assert cable_crossing(anchors, ends, 0.0005) == ''
+    reason = cable_crossing(anchors, ends, 0.008)
+    assert reason.startswith('cables 0 and 1 cross: 1.0 mm apart at [0.5, 0.5, 0.0]')

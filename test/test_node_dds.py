@@ -1,0 +1,608 @@
+"""dynamics_node under real DDS, as its own process (the installed console script).
+
+Each node runs isolated: a ROS domain id of its own (locked, see cdpr_dynamics.node_process),
+localhost-only discovery, its own ROS_LOG_DIR. The test process publishes poses and wrenches,
+receives predictions, tensions and diagnostics, calls the service and changes parameters; every
+number is checked against the library called directly: a mirror LivePredictor fed the inputs the
+node should accept (predictions and tensions must agree to rounding), a fresh equilibrium (the
+tension QP), K^-1 f for a constant wrench, frf_arrays and cdpr_analyze's JSON for the service.
+
+Traffic recording: set CDPR_RECORD_DIR=<folder> to record every node's topics and service
+events to <folder>/<test>.mcap with cdpr_dynamics.recording (the hook is :func:`_recorder`).
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, Vector3Stamped, WrenchStamped
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import GetParameters, SetParameters
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import JointState
+
+from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium, frf_arrays
+from cdpr_dynamics.config import load_settings
+from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.node_process import (isolated_env, reserve_domain_id, rss_kib, start_node,
+                                        stop_process)
+from msg_adapters.diagnostics import ERROR, OK, WARN, read_statuses
+from msg_adapters.displacement import read_displacement
+from msg_adapters.frf_service import (ARRAYS, FrequencyResponseError, call_frequency_response,
+                                      unpack_response)
+from msg_adapters.joint_state import read_tensions
+from msg_adapters.pose import pose_message
+from msg_adapters.validation import s_to_stamp, stamp_to_ns
+from msg_adapters.wrench import wrench_message
+
+REPO = Path(__file__).resolve().parents[1]
+PAPER = REPO / 'config' / 'paper_cdpr.yaml'
+RIGID = REPO / 'test' / 'data' / 'rigid_cdpr.yaml'
+TIMEOUT_S = 15.0
+START_S = 1000.0          # simulated time of the first input
+NAN, INF = float('nan'), float('inf')
+
+
+def _recorder(node, name: str):
+    """Hook: a cdpr_dynamics.recording.Recorder of all node traffic, or None."""
+    folder = os.environ.get('CDPR_RECORD_DIR')
+    if not folder:
+        return None
+    from cdpr_dynamics import recording
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    topics = ['pose', 'wrench', 'predicted_displacement', 'cable_tensions', '/diagnostics',
+              'frequency_response/_service_event', '/parameter_events']
+    return recording.Recorder(node, Path(folder) / f'{name}.mcap', topics, force=True)
+
+
+class Harness:
+    """One dynamics_node process and a test node talking to it; a mirror of its state."""
+
+    def __init__(self, params_file, log_dir: Path, name: str, parameters=None):
+        self.name = name
+        self.reservation = reserve_domain_id(1, 140)       # a domain per node under test
+        self.env = env = isolated_env(self.reservation.domain_id, log_dir / name)
+        self.context = context = rclpy.Context()
+        rclpy.init(context=context, domain_id=self.reservation.domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.settings = load_settings(params_file)
+        self.frame = self.settings.robot.frame_id
+        self.mirror = LivePredictor(self.settings)
+        self.t_ns = int(START_S * 1e9)
+        self.log_path = log_dir / f'{name}.log'
+        self._log = open(self.log_path, 'w')
+        self.proc = start_node(params_file, env, parameters, stdout=self._log,
+                               stderr=subprocess.STDOUT)
+        self.cond = threading.Condition()
+        self.predictions: dict[int, np.ndarray] = {}
+        self.rejected_stamps: list[int] = []
+        self.prediction_count = 0
+        self.tensions: list[JointState] = []
+        self.diagnostics: list[dict] = []
+        self.node = Node(f'test_{name}', context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.node.create_subscription(Vector3Stamped, 'predicted_displacement',
+                                      self._on_prediction, 1000)
+        self.node.create_subscription(JointState, 'cable_tensions', self._on_tensions, latched)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
+        self.pose_pub = self.node.create_publisher(PoseStamped, 'pose', qos_profile_sensor_data)
+        self.wrench_pub = self.node.create_publisher(WrenchStamped, 'wrench',
+                                                     qos_profile_sensor_data)
+        self.set_client = self.node.create_client(SetParameters, 'cdpr_dynamics/set_parameters')
+        self.frf_client = self.node.create_client(GetParameters, 'frequency_response')
+        self.recorder = _recorder(self.node, name)
+        self._spinner = threading.Thread(target=self._spin, daemon=True)
+        self._spinner.start()
+        ready = self.wait(lambda: (self.wrench_pub.get_subscription_count() > 0
+                                   and self.pose_pub.get_subscription_count() > 0
+                                   and self.tensions and self.diagnostics), TIMEOUT_S)
+        if not ready or not self.frf_client.wait_for_service(timeout_sec=TIMEOUT_S):
+            self.close()
+            raise RuntimeError(f'dynamics_node did not come up: {self.log_tail()}')
+
+    # -- plumbing ---------------------------------------------------------------------------
+
+    def _spin(self):
+        while rclpy.ok(context=self.executor.context) and not self._closed:
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # shutting down
+                break
+
+    _closed = False
+
+    def _on_prediction(self, msg):
+        with self.cond:
+            self.predictions[stamp_to_ns(msg.header.stamp)] = read_displacement(msg)
+            self.prediction_count += 1
+            self.cond.notify_all()
+
+    def _on_tensions(self, msg):
+        with self.cond:
+            self.tensions.append(msg)
+            self.cond.notify_all()
+
+    def _on_diagnostics(self, msg):
+        with self.cond:
+            self.diagnostics.append(read_statuses(msg))
+            self.cond.notify_all()
+
+    def wait(self, predicate, timeout_s=TIMEOUT_S) -> bool:
+        with self.cond:
+            return self.cond.wait_for(predicate, timeout_s)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def log_tail(self) -> str:
+        self._log.flush()
+        return ' | '.join(self.log_path.read_text().strip().splitlines()[-5:])
+
+    def close(self) -> int:
+        status = stop_process(self.proc)
+        if self.recorder is not None:
+            self.recorder.close()
+        self._closed = True
+        self._spinner.join(5.0)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self.reservation.release()
+        self._log.close()
+        return status
+
+    # -- inputs -----------------------------------------------------------------------------
+
+    def next_stamp(self, dt_s: float):
+        self.t_ns += int(round(dt_s * 1e9))
+        return s_to_stamp(self.t_ns * 1e-9)
+
+    def wrench(self, force, moment=(0.0, 0.0, 0.0), dt_s=0.005, frame=None, stamp=None):
+        """Send a wrench the node must accept; return its prediction, checked on the mirror."""
+        stamp = stamp or self.next_stamp(dt_s)
+        key = stamp_to_ns(stamp)
+        frame = self.frame if frame is None else frame
+        self.wrench_pub.publish(wrench_message(force, moment, frame, stamp))
+        assert self.wait(lambda: key in self.predictions), \
+            f'no prediction for the wrench at {key * 1e-9:.3f} s; alive={self.alive()}'
+        expected = self.mirror.advance(key * 1e-9, force, moment)
+        np.testing.assert_allclose(self.predictions[key], expected, rtol=1e-9, atol=1e-15)
+        return self.predictions[key]
+
+    def bad_wrench(self, force, moment=(0.0, 0.0, 0.0), frame=None, stamp=None, words='',
+                   level=WARN):
+        """Send a wrench the node must reject; check the diagnostics carry the reason."""
+        stamp = stamp or self.next_stamp(0.005)
+        count = len(self.diagnostics)
+        frame = self.frame if frame is None else frame
+        self.wrench_pub.publish(wrench_message(force, moment, frame, stamp))
+        self.expect_status('wrench input', level, words, since=count)
+        self.rejected_stamps.append(stamp_to_ns(stamp))
+
+    def pose(self, position, quaternion=(0.0, 0.0, 0.0, 1.0), dt_s=0.005):
+        """Send a pose the node must accept; return (lengths, tensions) it publishes."""
+        stamp = self.next_stamp(dt_s)
+        self.pose_pub.publish(pose_message(position, quaternion, self.frame, stamp))
+        assert self.wait(lambda: any(m.header.stamp == stamp for m in self.tensions)), \
+            f'no cable_tensions for the pose {position}; alive={self.alive()}'
+        self.mirror.update_pose(position, quaternion=np.asarray(quaternion) /
+                                np.linalg.norm(quaternion))
+        msg = next(m for m in reversed(self.tensions) if m.header.stamp == stamp)
+        lengths, tensions = read_tensions(msg)
+        np.testing.assert_allclose(tensions, self.mirror.eq.tensions.tension_n, rtol=1e-9)
+        np.testing.assert_allclose(lengths, self.mirror.eq.geometry.length_m, rtol=1e-12)
+        return lengths, tensions
+
+    def bad_pose(self, position, quaternion=(0.0, 0.0, 0.0, 1.0), frame=None, stamp=None,
+                 words='', model=False):
+        """Send a pose the node must reject; ``model``: the model rejects it, not the adapter
+        (the mirror then goes through the same failure, e.g. a failed QP that drops its warm
+        start)."""
+        stamp = stamp or self.next_stamp(0.005)
+        count = len(self.diagnostics)
+        frame = self.frame if frame is None else frame
+        self.pose_pub.publish(pose_message(position, quaternion, frame, stamp))
+        self.expect_status('pose input', ERROR, words, since=count)
+        assert not any(m.header.stamp == stamp for m in self.tensions)
+        if model:
+            with pytest.raises(AnalysisError, match=words):
+                self.mirror.update_pose(position, quaternion=quaternion)
+
+    def expect_status(self, title, level, words, since=0):
+        """Wait for a diagnostics status ``cdpr_dynamics: title`` at ``level`` with ``words``."""
+        name = f'cdpr_dynamics: {title}'
+
+        def seen():
+            return any(name in d and d[name]['level'] == level and words in d[name]['message']
+                       for d in self.diagnostics[since:])
+        assert self.wait(seen), (f'no {title} status at level {level} with {words!r}; last: '
+                                 f'{self.diagnostics[-1].get(name)}; alive={self.alive()}')
+        assert self.alive()
+
+    def status(self, title, since=None) -> dict:
+        """The next diagnostics status ``title`` published after now."""
+        count = len(self.diagnostics) if since is None else since
+        name = f'cdpr_dynamics: {title}'
+        assert self.wait(lambda: any(name in d for d in self.diagnostics[count:]))
+        return next(d[name] for d in self.diagnostics[count:] if name in d)
+
+    # -- service and parameters -------------------------------------------------------------
+
+    def frf(self, names=None, overrides=None):
+        return call_frequency_response(self.node, names, overrides, TIMEOUT_S, spin=False)
+
+    def frf_raw(self, names):
+        request = GetParameters.Request(names=list(names))
+        future = self.frf_client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        assert done.wait(TIMEOUT_S)
+        return unpack_response(request, future.result())
+
+    def set_parameters(self, **values):
+        """Set node parameters (``model__method='spring'`` for model.method); the results."""
+        params = []
+        for key, value in values.items():
+            name = key.replace('__', '.')
+            if isinstance(value, str):
+                pv = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
+            elif isinstance(value, bool):
+                pv = ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=value)
+            elif isinstance(value, int):
+                pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
+            elif isinstance(value, float):
+                pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+            else:
+                pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY,
+                                    double_array_value=[float(v) for v in value])
+            params.append(ParameterMsg(name=name, value=pv))
+        assert self.set_client.wait_for_service(timeout_sec=TIMEOUT_S)
+        future = self.set_client.call_async(SetParameters.Request(parameters=params))
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        assert done.wait(TIMEOUT_S)
+        return future.result().results
+
+
+# ------------------------------------------------------------------------------- fixtures
+
+@pytest.fixture(scope='module')
+def ros(tmp_path_factory):
+    """This process localhost-only, logs in a temporary folder; each Harness (node under test
+    and the test's rclpy context) then takes a ROS domain of its own."""
+    log_dir = tmp_path_factory.mktemp('ros_log')
+    env = isolated_env(0, log_dir)
+    patch = pytest.MonkeyPatch()
+    for name in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_LOG_DIR', 'AMENT_PREFIX_PATH'):
+        patch.setenv(name, env[name])
+    for name in ('ROS_LOCALHOST_ONLY', 'ROS_STATIC_PEERS'):
+        patch.delenv(name, raising=False)
+    yield {'log_dir': log_dir}
+    patch.undo()
+
+
+@pytest.fixture(scope='module')
+def paper(ros):
+    """dynamics_node on the paper's robot, shared by the tests of this module in order."""
+    harness = Harness(PAPER, ros['log_dir'], 'paper')
+    yield harness
+    status = harness.close()
+    assert status == 0, f'dynamics_node exited with {status}: {harness.log_tail()}'
+
+
+def library_tensions(settings, position, quaternion=(0, 0, 0, 1)):
+    rot = Rotation.from_quat(quaternion).as_matrix()
+    return equilibrium(settings, np.asarray(position, float), rot)
+
+
+# ---------------------------------------------------------------------------------- tests
+
+def test_starts_at_the_initial_pose(paper):
+    msg = paper.tensions[0]
+    lengths, tensions = read_tensions(msg)
+    eq = library_tensions(paper.settings, paper.settings.initial_position_m)
+    np.testing.assert_allclose(tensions, eq.tensions.tension_n, rtol=1e-7, atol=1e-6)
+    np.testing.assert_allclose(lengths, eq.geometry.length_m, rtol=1e-12)
+    assert list(msg.name) == [f'cable_{i}' for i in range(8)]
+    model = paper.status('model')
+    assert model['values']['method'] == 'fem' and model['values']['dofs'] == '363'
+    assert model['values']['qp_status'] == 'solved'
+    assert 'heavy damping' in model['values']['warnings']     # the paper's C = 0.05 M + 0.05 K
+
+
+def test_tensions_follow_the_pose(paper):
+    for position in ([0.1, 0.05, 1.3], [-0.3, 0.2, 1.0], [0.0, 0.0, 1.25]):
+        lengths, tensions = paper.pose(position)
+        eq = library_tensions(paper.settings, position)      # a fresh QP, no warm start
+        np.testing.assert_allclose(tensions, eq.tensions.tension_n, rtol=1e-6, atol=1e-4)
+        np.testing.assert_allclose(lengths, eq.geometry.length_m, rtol=1e-12)
+    rebuilds = int(paper.status('model')['values']['rebuilds'])
+    paper.pose([0.0, 0.0, 1.25 + 5e-5])                      # within node.pose_tolerance_m
+    paper.pose([0.0, 0.0, 1.25])
+    assert int(paper.status('model')['values']['rebuilds']) == rebuilds   # nothing rebuilt
+
+
+def test_constant_wrench_converges_to_static_deflection(paper):
+    position = [0.1, -0.05, 1.2]
+    paper.pose(position)
+    force = np.array([50.0, -30.0, 800.0])
+    for _ in range(200):                                      # 1 s, a wrench every 5 ms
+        u = paper.wrench(force)
+    eq = library_tensions(paper.settings, position)
+    stiffness = build_system(paper.settings, eq).static_stiffness()
+    np.testing.assert_allclose(u, np.linalg.solve(stiffness, force), rtol=1e-4, atol=1e-12)
+    stats = paper.status('wrench input')['values']
+    assert float(stats['compute_ms_p50']) < 1.0
+
+
+def test_frequency_response_matches_the_library(paper):
+    paper.pose([0.2, 0.1, 1.3])
+    arrays = paper.frf()
+    expected = frf_arrays(paper.settings, build_system(paper.settings, paper.mirror.eq))
+    assert list(arrays) == list(ARRAYS)
+    for name in ARRAYS:
+        np.testing.assert_allclose(arrays[name], expected[name], rtol=1e-9, err_msg=name)
+    calls = paper.status('frequency_response')['values']
+    again = paper.frf(['amplitude_z_m'])                     # same state: from the cache
+    np.testing.assert_array_equal(again['amplitude_z_m'], arrays['amplitude_z_m'])
+    after = paper.status('frequency_response')['values']
+    assert int(after['cache_hits']) == int(calls['cache_hits']) + 1
+
+
+def test_frequency_response_equals_cdpr_analyze(paper, tmp_path):
+    analyze = Path(sys.executable).parent / 'cdpr_analyze'
+    if not analyze.exists():
+        pytest.skip('cdpr_analyze is not installed')
+    paper.pose(paper.settings.initial_position_m.tolist())   # cdpr_analyze's pose
+    arrays = paper.frf()
+    out = tmp_path / 'analyze.json'
+    run = subprocess.run([str(analyze), '--config', str(PAPER), '--json', str(out),
+                          '--duration', '0.01'], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    doc = json.loads(out.read_text())
+    assert doc['method'] == 'fem'
+    frf = doc['frf']
+    amplitude, phase = np.array(frf['amplitude_m']), np.array(frf['phase_rad'])
+    np.testing.assert_allclose(arrays['frequency_hz'], frf['frequency_hz'], rtol=1e-12)
+    for axis, name in enumerate('xyz'):
+        np.testing.assert_allclose(arrays[f'amplitude_{name}_m'], amplitude[:, axis],
+                                   rtol=1e-6, atol=1e-15)
+    np.testing.assert_allclose(arrays['phase_z_rad'], phase[:, 2], atol=1e-6)
+    n = arrays['natural_frequencies_hz'].size
+    np.testing.assert_allclose(arrays['natural_frequencies_hz'],
+                               doc['natural_frequencies_hz'][:n], rtol=1e-6)
+    np.testing.assert_allclose(doc['tensions_n'], read_tensions(paper.tensions[-1])[1],
+                               rtol=1e-6, atol=1e-4)
+
+
+def test_frequency_response_overrides_and_reasons(paper):
+    overrides = {'method': 'spring', 'n_points': 50, 'f_max_hz': 20.0, 'force_x_n': 100.0}
+    arrays = paper.frf(['frequency_hz', 'amplitude_x_m', 'amplitude_z_m'], overrides)
+    settings = paper.settings.replace(method='spring', n_points=50, f_max_hz=20.0,
+                                      frf_force_n=np.array([100.0, 0.0, 1500.0]))
+    expected = frf_arrays(settings, build_system(settings, paper.mirror.eq))
+    assert arrays['frequency_hz'].size == 50
+    for name in arrays:
+        np.testing.assert_allclose(arrays[name], expected[name], rtol=1e-9, err_msg=name)
+
+    got, reasons = paper.frf_raw(['frequency_hz', 'no_such_array', 'n_points=20'])
+    assert got['frequency_hz'].size == 20
+    assert reasons['no_such_array'].startswith("unknown array 'no_such_array'")
+    for names, words in ((['amplitude_z_m', 'colour=red'], "unknown override 'colour'"),
+                         (['amplitude_z_m', 'n_points=0'], 'outside [1'),
+                         (['amplitude_z_m', 'method=bogus'], 'must be one of'),
+                         (['amplitude_z_m', 'f_min_hz=30', 'f_max_hz=10'], 'exceeds'),
+                         (['amplitude_z_m', 'n_points=500000'], 'node.frf_max_points'),
+                         (['amplitude_z_m', 'method=dsm', 'n_points=3'], '')):
+        got, reasons = paper.frf_raw(names)
+        if words:
+            assert words in reasons['amplitude_z_m'], reasons
+        else:
+            assert 'amplitude_z_m' in got or 'amplitude_z_m' in reasons
+    with pytest.raises(FrequencyResponseError, match="unknown array 'nope'"):
+        paper.frf(['nope'])
+    assert paper.alive()
+    paper.frf(['amplitude_z_m'])
+    paper.expect_status('frequency_response', OK, 'calls')
+
+
+@pytest.mark.parametrize('force, moment, frame, old, words', [
+    ([NAN, 0.0, 0.0], [0.0, 0.0, 0.0], None, False, 'wrench is not finite'),
+    ([0.0, 0.0, 0.0], [0.0, INF, 0.0], None, False, 'wrench is not finite'),
+    ([0.0, 0.0, 100.0], [0.0, 0.0, 0.0], 'tool0', False, "in frame 'tool0'"),
+    ([0.0, 0.0, 100.0], [0.0, 0.0, 0.0], '', False, 'empty frame_id'),
+    ([0.0, 0.0, 100.0], [0.0, 0.0, 0.0], None, True, 'out of order'),
+    ([0.0, 0.0, -5000.0], [0.0, 0.0, 0.0], None, False, 'outside the feasible set'),
+], ids=['nan-force', 'inf-moment', 'other-frame', 'empty-frame', 'out-of-order',
+        'infeasible'])
+def test_bad_wrench_is_rejected_and_the_node_carries_on(paper, force, moment, frame, old,
+                                                        words):
+    paper.pose([0.05, 0.0, 1.25])
+    paper.wrench([0.0, 0.0, 300.0])
+    stamp = s_to_stamp((paper.t_ns - 2_000_000) * 1e-9) if old else None
+    paper.bad_wrench(force, moment, frame, stamp, words)
+    for _ in range(5):                                       # still predicting, correctly
+        paper.wrench([0.0, 20.0, 300.0])
+    assert paper.rejected_stamps[-1] not in paper.predictions
+
+
+@pytest.mark.parametrize('position, quaternion, frame, old, words', [
+    ([NAN, 0.0, 1.25], (0, 0, 0, 1), None, False, 'position is not finite'),
+    ([0.0, 0.0, 1.25], (0, 0, INF, 1), None, False, 'orientation is not finite'),
+    ([0.0, 0.0, 1.25], (0, 0, 0.5, 1.2), None, False, 'not a unit quaternion'),
+    ([0.0, 0.0, 1.25], (0, 0, 0, 1), 'map', False, "in frame 'map'"),
+    ([0.0, 0.0, 1.25], (0, 0, 0, 1), None, True, 'out of order'),
+    ([0.0, 0.0, 3.0], (0, 0, 0, 1), None, False, 'outside the frame'),
+    ([0.0, 0.0, 2.4], (0, 0, 0, 1), None, False, 'infeasible tension distribution'),
+], ids=['nan-position', 'inf-quaternion', 'non-unit-quaternion', 'other-frame',
+        'out-of-order', 'outside-frame', 'infeasible-tensions'])
+def test_bad_pose_is_rejected_and_the_node_carries_on(paper, position, quaternion, frame,
+                                                      old, words):
+    paper.pose([0.1, 0.1, 1.2])
+    stamp = s_to_stamp((paper.t_ns - 2_000_000) * 1e-9) if old else None
+    model = words in ('outside the frame', 'infeasible tension distribution')
+    paper.bad_pose(position, quaternion, frame, stamp, words, model)
+    paper.wrench([0.0, 0.0, 500.0])                          # still at the last good pose
+    paper.pose([0.0, 0.1, 1.3])                              # and a good pose is taken
+    paper.wrench([0.0, 0.0, 500.0])
+    paper.expect_status('pose input', OK, 'accepted')
+
+
+def test_runtime_parameter_changes(paper):
+    paper.pose([0.0, 0.0, 1.25])
+    results = paper.set_parameters(model__method='spring')
+    assert results[0].successful, results[0].reason
+    paper.mirror.set_settings(paper.settings.replace(method='spring'))
+    model = paper.status('model')['values']
+    assert model['method'] == 'spring' and model['dofs'] == '3'
+    for _ in range(20):
+        paper.wrench([0.0, 0.0, 1000.0])                     # the spring model predicts now
+    spring = paper.settings.replace(method='spring')
+    np.testing.assert_allclose(paper.frf(['amplitude_z_m'])['amplitude_z_m'],
+                               frf_arrays(spring, build_system(spring, paper.mirror.eq))
+                               ['amplitude_z_m'], rtol=1e-9)
+
+    rejected = [
+        (dict(model__method='bogus'), 'must be one of'),
+        (dict(model__elements_per_cable=0), ''),             # outside the descriptor's range
+        (dict(frf__f_min_hz=50.0), 'exceeds frf.f_max_hz'),
+        (dict(model__method='dsm'), 'no finite matrices'),   # a model invalid for the state
+        (dict(tension__min_n=0.0), 'no valid model for this pose'),
+        (dict(robot__anchors=[0.0] * 24), 'read-only'),
+        (dict(cable__area_m2='thick'), ''),                  # wrong type
+    ]
+    for change, words in rejected:
+        result = paper.set_parameters(**change)[0]
+        assert not result.successful, change
+        assert words in result.reason, (change, result.reason)
+    assert paper.status('model')['values']['method'] == 'spring'
+    paper.wrench([0.0, 0.0, 1000.0])                         # unchanged by the rejections
+
+    assert paper.set_parameters(use_sim_time=False)[0].successful      # not ours: left alone
+    assert paper.set_parameters(node__pose_tolerance_m=2e-4)[0].successful
+    results = paper.set_parameters(model__method='fem', damping__stiffness_factor=0.001)
+    assert all(r.successful for r in results)
+    paper.mirror.set_settings(paper.settings.replace(damping_stiffness_factor=0.001))
+    for _ in range(20):
+        paper.wrench([0.0, 0.0, 1000.0])
+    results = paper.set_parameters(damping__stiffness_factor=0.05, node__pose_tolerance_m=1e-4)
+    assert all(r.successful for r in results)
+    paper.mirror.set_settings(paper.settings)
+    assert paper.status('model')['values']['method'] == 'fem'
+
+
+def test_rigid_platform_inputs(ros):
+    rigid = Harness(RIGID, ros['log_dir'], 'rigid')
+    try:
+        assert rigid.status('model')['values']['dofs'] == '174'
+        turned = Rotation.from_euler('z', 45, degrees=True).as_quat()
+        rigid.bad_pose([0.0, 0.0, 1.25], turned, words='cables 0 and 2 cross', model=True)
+        small = Rotation.from_euler('xyz', [1.0, -0.5, 2.0], degrees=True).as_quat()
+        rigid.pose([0.05, -0.02, 1.3], small)
+        eq = library_tensions(rigid.settings, [0.05, -0.02, 1.3], small)
+        np.testing.assert_allclose(read_tensions(rigid.tensions[-1])[1], eq.tensions.tension_n,
+                                   rtol=1e-6, atol=1e-4)
+        for _ in range(40):
+            rigid.wrench([10.0, 0.0, 100.0], [1.0, -2.0, 0.5])
+        rigid.bad_wrench([0.0, 0.0, 0.0], [0.0, 0.0, 500.0], words='outside the feasible set')
+        rigid.wrench([10.0, 0.0, 100.0], [1.0, -2.0, 0.5])
+    finally:
+        assert rigid.close() == 0
+
+
+def test_bad_configuration_exits_with_one_line(ros, tmp_path):
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text(PAPER.read_text().replace('method: fem', 'method: bogus'))
+    with reserve_domain_id(1, 140) as domain:
+        env = isolated_env(domain.domain_id, tmp_path / 'log')
+        proc = start_node(bad, env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1
+    lines = err.decode().strip().splitlines()
+    assert len(lines) == 1 and 'model.method' in lines[0] and 'bogus' in lines[0], lines
+
+
+def test_flood_of_wrenches(ros):
+    """10 s of wrenches at 5 kHz from another process: alive, bounded memory, rate reported."""
+    flood = Harness(PAPER, ros['log_dir'], 'flood')
+    try:
+        flood.wrench([0.0, 0.0, 100.0])
+        before = flood.status('wrench input')
+        rss = [rss_kib(flood.proc.pid)]
+        count0 = flood.prediction_count
+        sender = subprocess.Popen(
+            [sys.executable, '-m', 'cdpr_dynamics.cli.bench_node', 'flood', '--rate', '5000',
+             '--duration', '10', '--start-s', str(flood.t_ns * 1e-9 + 1.0)],
+            env=flood.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        while sender.poll() is None:
+            time.sleep(0.5)           # sampling period of the memory, not a synchronisation
+            rss.append(rss_kib(flood.proc.pid))
+        out, err = sender.communicate(timeout=30)
+        assert sender.returncode == 0, err
+        sent = json.loads(out.strip().splitlines()[-1])
+        assert flood.alive(), flood.log_tail()
+        flood.t_ns = int((sent['last_stamp_s'] + 1.5) * 1e9)   # > MAX_GAP_S: restart at rest
+        flood.mirror.reset_time()
+        after = flood.status('wrench input')
+        accepted = int(after['values']['accepted']) - int(before['values']['accepted'])
+        received = flood.prediction_count - count0
+        growth_mib = (max(rss) - rss[0]) / 1024
+        values = after['values']
+        report = (f"flood: sent {sent['sent']} wrenches at {sent['rate_hz']:.0f} Hz for "
+                  f"{sent['duration_s']:.1f} s; node processed {accepted} "
+                  f"({accepted / sent['duration_s']:.0f}/s, "
+                  f"{100 * accepted / sent['sent']:.1f}%), test received {received} "
+                  f"predictions; node RSS {rss[0] / 1024:.1f} -> {max(rss) / 1024:.1f} MiB; "
+                  f"compute p50/p99 {values.get('compute_ms_p50')}/"
+                  f"{values.get('compute_ms_p99')} ms")
+        print(report)
+        (ros['log_dir'] / 'flood_report.txt').write_text(report + '\n')
+        assert sent['sent'] >= 0.8 * 5000 * 10
+        assert accepted > 0.2 * sent['sent']
+        assert growth_mib < 50.0, report
+        flood.wrench([0.0, 0.0, 100.0])                      # still answers, correctly
+        assert flood.frf(['amplitude_z_m'])['amplitude_z_m'].size == 391
+    finally:
+        assert flood.close() == 0
+
+
+def test_demo_writes_its_figure(tmp_path):
+    """cdpr_demo end to end (2 s of controller): node, controller, service, PNG; exit 0."""
+    demo = Path(sys.executable).parent / 'cdpr_demo'
+    if not demo.exists():
+        pytest.skip('cdpr_demo is not installed')
+    png = tmp_path / 'demo.png'
+    with reserve_domain_id(1, 140) as domain:
+        env = isolated_env(domain.domain_id, tmp_path / 'log')
+        run = subprocess.run([str(demo), '--duration', '2', '--output', str(png)], env=env,
+                             capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert png.stat().st_size > 20000
+    assert f'wrote {png.resolve()}' in run.stdout
+    assert 'node predicted' in run.stdout and 'fem model, 363 DOFs' in run.stdout
+
+
+def test_demo_fails_with_one_line(tmp_path):
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('cdpr_dynamics:\n  ros__parameters:\n    robot:\n      anchors: [1.0, 2.0]\n')
+    run = subprocess.run([str(Path(sys.executable).parent / 'cdpr_demo'), '--config', str(bad)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 1
+    assert run.stderr.strip() == ('cdpr_demo: error: robot.anchors needs 3 values per cable, '
+                                  'got 2 values')
