@@ -29,6 +29,7 @@ setup(
             'cdpr_bench = cdpr_dynamics.cli.bench:main',
             'cdpr_record = cdpr_dynamics.cli.record:main',
             'cdpr_demo = cdpr_dynamics.cli.demo:main',
+            'cdpr_tradeoff = cdpr_dynamics.cli.tradeoff:main',
         ],
     },
 )

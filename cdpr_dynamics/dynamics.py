@@ -221,7 +221,7 @@ def natural_frequencies(system: PlatformSystem, count: int = 12) -> np.ndarray:
     k, m = system.matrices()
     n = k.shape[0]
     count = min(count, n)
-    if n <= DENSE_EIGEN_DOFS:
+    if n <= DENSE_EIGEN_DOFS or count >= n - 1:       # eigsh needs count < n - 1
         values = scipy.linalg.eigh(k.toarray(), m.toarray(), eigvals_only=True,
                                    subset_by_index=[0, count - 1])
     else:

@@ -27,6 +27,7 @@ from cdpr_dynamics.robot import GeometryError, geometry, quaternion_to_matrix, r
 
 FALLBACK_METHOD = 'spring'
 MAX_GAP_S = 1.0
+AUTO_RECHOOSE_M = 0.05
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,8 @@ class LivePredictor:
         self.rotation = None
         self.last_update = PoseUpdate(False)
         self.wrench_set: WrenchSet | None = None
+        self._choice = None            # the model auto chose, and where
+        self._choice_position = None
         self._t_s: float | None = None
         self._remainder_s = 0.0
         self._load = None
@@ -123,16 +126,31 @@ class LivePredictor:
                                             s.robot, s.external_force_n, s.external_moment_nm))
         return self.wrench_set.reason(force_n, moment_nm)
 
+    def _resolved_settings(self, eq: Equilibrium) -> Settings:
+        """Settings with ``auto`` replaced by its choice, re-chosen only after the pose moved
+        more than ``AUTO_RECHOOSE_M`` (the choice costs 10-20 ms; it varies slowly)."""
+        s = self.settings
+        if s.method != 'auto':
+            return s
+        moved = (self._choice is None or np.linalg.norm(eq.geometry.position_m
+                                                         - self._choice_position) > AUTO_RECHOOSE_M)
+        if moved:
+            from cdpr_dynamics.selection import choose_model
+            self._choice = choose_model(s, eq)
+            self._choice_position = eq.geometry.position_m
+        return s.replace(method=self._choice.method,
+                         elements_per_cable=self._choice.elements_per_cable)
+
     def _build(self, eq: Equilibrium):
         """The configured model, or the spring fallback (with a warning) where it is invalid."""
         warnings = []
         try:
-            system = build_system(self.settings, eq)
+            system = build_system(self._resolved_settings(eq), eq)
             if system.assembly.valid:
                 return system, list(system.assembly.warnings)
             warnings += system.assembly.warnings
             failed = system.assembly.method
-        except (AnalysisError, DynamicsError) as exc:
+        except (AnalysisError, DynamicsError, ValueError) as exc:
             warnings.append(str(exc))
             failed = self.settings.method
         system = build_system(self.settings, eq, method=FALLBACK_METHOD)
@@ -158,6 +176,7 @@ class LivePredictor:
         old = (self.settings, self._solver)
         self.settings = settings
         self._solver = new_tension_solver(settings)
+        self._choice = None
         try:
             return self.update_pose(self.position_m, rotation=self.rotation, force=True)
         except Exception:

@@ -2,7 +2,7 @@
 
     cdpr_analyze [--config PATH] [--method M [M ...]] [--elements N] [--json PATH]
                  [--plot-dir DIR] [--f-min HZ] [--f-max HZ] [--n-points N]
-                 [--excitation-hz F [F ...]] [--duration S]
+                 [--excitation-hz F [F ...]] [--duration S] [--slack-aware]
 
 Writes the JSON of SPEC section 6 (for the first method; every method under ``methods``) and
 PNG plots of the FRF (one line per method) and of the time histories. Errors end with one line
@@ -23,17 +23,32 @@ from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, Stopwatch, build
 from cdpr_dynamics.config import METHODS, ConfigError, Settings, load_settings
 from cdpr_dynamics.dynamics import natural_frequencies, tension_change, time_history
 from cdpr_dynamics.models.catenary import sag_parameter
+from cdpr_dynamics.selection import accuracy_warnings, choose_model
+from cdpr_dynamics.slack import peak_displacement, platform_only_method, slack_time_history
 
 
 def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration_s: float,
-                   progress=None) -> dict:
-    """The SPEC section 6 JSON document of one method at equilibrium ``eq``."""
+                   progress=None, slack_aware: bool = False) -> dict:
+    """The SPEC section 6 JSON document of one method at equilibrium ``eq``.
+
+    ``slack_aware`` adds to each time history the slack-aware one (cables carry no
+    compression, :mod:`cdpr_dynamics.slack`) under ``slack_aware``.
+    """
     watch = Stopwatch()
+    choice = None
     with watch('assembly'):
-        system = safe(build_system, settings, eq)
+        if settings.method == 'auto':
+            choice = safe(choose_model, settings, eq)
+            system = safe(build_system, settings, eq, choice.method, choice.elements_per_cable)
+        else:
+            system = safe(build_system, settings, eq)
     assembly = system.assembly
     sag = sag_parameter(eq.cables)
     warnings = list(assembly.warnings) + sag_warnings(settings, assembly.method, sag)
+    if choice is None:
+        warnings += accuracy_warnings(settings, eq, assembly.method, assembly.elements_per_cable)
+    elif choice.estimated_error > settings.tolerance:
+        warnings.append(f'accuracy: {choice.reason}')
     if not assembly.valid:
         raise AnalysisError(f'method {assembly.method} fails for this scene: '
                             + '; '.join(assembly.warnings))
@@ -62,15 +77,21 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
                 histories.append({'excitation_hz': float(f_exc), 't_s': th.t_s.tolist(),
                                   'u_m': th.u_m.tolist(), 'min_tension_n': min_tension,
                                   'slack': bool(slack)})
+                if slack_aware:
+                    histories[-1]['slack_aware'] = _slack_aware(settings, eq, assembly.method,
+                                                                f_exc, duration_s, damping)
+                    histories[-1]['slack_aware']['peak_uz_linear_m'] = peak_displacement(th.u_m)
     else:
         warnings.append(f'method {assembly.method} has no finite matrices: no time history')
     amplitude = np.stack([arrays['amplitude_x_m'], arrays['amplitude_y_m'],
                           arrays['amplitude_z_m']], axis=1)
     phase = np.stack([arrays['phase_x_rad'], arrays['phase_y_rad'], arrays['phase_z_rad']],
                      axis=1)
-    choice = {'method': assembly.method, 'elements_per_cable': assembly.elements_per_cable,
-              'reason': getattr(system, 'choice_reason', None)
-              or f'model.method = {settings.method} as configured'}
+    chosen = {'method': assembly.method, 'elements_per_cable': assembly.elements_per_cable,
+              'reason': choice.reason if choice else
+              f'model.method = {settings.method} as configured'}
+    if choice:
+        chosen['estimated_error'] = choice.estimated_error
     return {
         'method': assembly.method,
         'dofs': system.dofs,
@@ -84,10 +105,23 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
         'frf': {'frequency_hz': arrays['frequency_hz'].tolist(),
                 'amplitude_m': amplitude.tolist(), 'phase_rad': phase.tolist()},
         'time_history': histories,
-        'model_choice': choice,
+        'model_choice': chosen,
         'warnings': warnings,
         'timings_s': watch.seconds,
     }
+
+
+def _slack_aware(settings: Settings, eq: Equilibrium, method: str, f_exc: float,
+                 duration_s: float, damping) -> dict:
+    """The slack-aware time history of ``method``'s platform-only form, as JSON."""
+    name = platform_only_method(method)
+    system = safe(build_system, settings, eq, name, 1)
+    th = safe(slack_time_history, system, settings.frf_force_n, f_exc, duration_s, damping,
+              settings.dt_s, settings.newmark_alpha, settings.newmark_beta)
+    return {'method': name, 'elements_per_cable': 1, 'u_m': th.u_m.tolist(),
+            'peak_uz_m': peak_displacement(th.u_m),
+            'min_tension_n': float(th.tension_n.min()),
+            'slack_fraction': th.slack.mean(axis=0).tolist()}
 
 
 def _plot(documents: list[dict], plot_dir: Path) -> list[Path]:
@@ -119,6 +153,10 @@ def _plot(documents: list[dict], plot_dir: Path) -> list[Path]:
             ax.plot(h['t_s'], 1e3 * np.asarray(h['u_m'])[:, 2],
                     label=f"{method}, {h['excitation_hz']:g} Hz"
                     + (' (a cable goes slack)' if h['slack'] else ''))
+            if 'slack_aware' in h:
+                ax.plot(h['t_s'], 1e3 * np.asarray(h['slack_aware']['u_m'])[:, 2], ls='--',
+                        label=f"slack-aware {h['slack_aware']['method']}, "
+                        f"{h['excitation_hz']:g} Hz")
         ax.set_xlabel('time (s)')
         ax.set_ylabel('u_z (mm)')
         ax.set_title('Time history of the end-effector (Newmark)')
@@ -145,6 +183,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument('--excitation-hz', type=float, nargs='+', default=[5.0],
                         help='harmonic excitation frequencies of the time histories (Hz)')
     parser.add_argument('--duration', type=float, default=1.0, help='time history length (s)')
+    parser.add_argument('--slack-aware', action='store_true',
+                        help='also a time history where cables carry no compression')
     return parser.parse_args(argv)
 
 
@@ -160,7 +200,7 @@ def run(args: argparse.Namespace, progress=None) -> dict:
     with watch('tensions'):
         eq = equilibrium(settings)
     documents = [analyze_method(settings.replace(method=m), eq, args.excitation_hz,
-                                args.duration, progress)
+                                args.duration, progress, getattr(args, 'slack_aware', False))
                  for m in (args.method or [settings.method])]
     result = dict(documents[0])
     result['timings_s'] = {**watch.seconds, **result['timings_s']}

@@ -1,9 +1,8 @@
-"""Figures of the live node: compute per wrench, pose updates, DDS latency, sustained rate.
+"""Figures of the live node for ``cdpr_bench``: compute per wrench, pose updates, DDS.
 
-    python -m cdpr_dynamics.cli.bench_node [--config PATH] [--json PATH] [--quick]
     python -m cdpr_dynamics.cli.bench_node flood --rate HZ --duration S [--start-s T]
 
-``measure``: (1) the node's compute per wrench, in process: the wrench callback's work
+(1) the node's compute per wrench, in process: the wrench callback's work
 (message check, feasibility, Newmark to the stamp, the prediction message) for the configured
 model at 1 kHz stamps; (2) a pose update (tensions QP warm-started + model + refactorisation)
 for spring, catenary and fem n = 16 along a slow trajectory; (3) over DDS with the node as a
@@ -270,34 +269,16 @@ def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest='command')
+    """``flood``: the wrench publisher of the benchmark and of the flood test."""
+    parser = argparse.ArgumentParser(description='publish wrenches at a rate (tests, cdpr_bench)')
+    sub = parser.add_subparsers(dest='command', required=True)
     fl = sub.add_parser('flood', help='publish wrenches at a rate (for tests and benchmarks)')
     fl.add_argument('--rate', type=float, default=5000.0)
     fl.add_argument('--duration', type=float, default=10.0)
     fl.add_argument('--start-s', type=float, default=1000.0)
     fl.add_argument('--frame', default='world')
-    parser.add_argument('--config', default=None)
-    parser.add_argument('--json', type=Path)
-    parser.add_argument('--quick', action='store_true', help='fewer samples, two flood rates')
-    parser.add_argument('--dds-only', action='store_true', help='only the DDS figures')
     args = parser.parse_args(argv)
-    if args.command == 'flood':
-        print(json.dumps(flood(args.rate, args.duration, args.start_s, args.frame)))
-        return 0
-    config = args.config or str(default_config_path())
-    settings = load_settings(config)
-    report = {'config': config}
-    if not args.dds_only:
-        report['compute_per_wrench'] = compute_per_wrench(settings,
-                                                          5000 if args.quick else 20000)
-        report['pose_update'] = pose_updates(settings, n=100 if args.quick else 300)
-    report['dds'] = dds(config, rates=(1000, 5000) if args.quick else
-                        (1000, 2000, 3000, 5000, 8000))
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + '\n')
+    print(json.dumps(flood(args.rate, args.duration, args.start_s, args.frame)))
     return 0
 
 

@@ -38,7 +38,12 @@ def chain_end_stiffness(k_element: np.ndarray, m_element: np.ndarray, n: int,
     d12 = -k_element - lam * (m_element / 6.0)
     s = d11
     for _ in range(n - 1):
-        s = d11 - d12 * d12 / (s + d11)
+        denominator = s + d11
+        # 0/0: a chain of zero stiffness and mass (T = 0 transversely, at lam = 0) stays zero;
+        # x/0: an exact pole of the chain
+        at_pole = denominator == 0
+        s = np.where(at_pole, np.where(d12 == 0, 0.0, np.inf),
+                     d11 - d12 * d12 / np.where(at_pole, 1.0, denominator))
     return s
 
 

@@ -1,0 +1,238 @@
+"""``cdpr_tradeoff``: speed against accuracy of every cable model for one scene.
+
+    cdpr_tradeoff [--config PATH] [--f-max HZ] [--tolerance TOL] [--repeat N]
+                  --csv PATH --plot PATH
+
+For spring, fem n = 1 ... 64, catenary, catenary_exact, fem_sag n = 4 ... 64 and dsm: the error
+against the reference over the band [0, f_max] (natural frequencies in the band, paired in
+ascending order, a missed mode counting 100 %; the damped FRF of the centroid, max relative
+error of the complex response over the sweep, which bounds the error of |A|) against the
+compute time (build + FRF + modes in the band, median of ``--repeat`` runs). The reference is
+``dsm`` where sag is negligible and Richardson-extrapolated ``fem_sag`` where it is not
+(:func:`cdpr_dynamics.selection.reference_solution`); the chart's title says which. The CSV
+also has ``auto``'s estimates of both errors, so the estimates can be read against the truth,
+and the chart marks what ``auto`` picks at ``model.tolerance``.
+
+Timings are wall-clock in this process; run with OMP_NUM_THREADS=1 on a shared machine.
+Errors end with one line naming the cause and exit status 1.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cdpr_dynamics.analysis import AnalysisError, equilibrium
+from cdpr_dynamics.config import ConfigError, load_settings
+from cdpr_dynamics.dynamics import DynamicsError
+from cdpr_dynamics.selection import (Estimator, SelectionError, choose_model, measure_error,
+                                     reference_solution, solve)
+
+SWEEP = ([('spring', 1)] + [('fem', n) for n in (1, 2, 4, 8, 16, 32, 64)]
+         + [('catenary', 1), ('catenary_exact', 1)]
+         + [('fem_sag', n) for n in (4, 8, 16, 32, 64)] + [('dsm', 0)])
+COLUMNS = ('method', 'elements_per_cable', 'dofs', 'freq_error_pct', 'frf_error_pct', 'time_s',
+           'modes_in_band', 'missed_modes', 'estimated_freq_error_pct',
+           'estimated_frf_error_pct', 'valid', 'note')
+FLOOR_PCT = 1e-5      # errors below this are drawn at it (log axes)
+
+
+def time_solution(settings, eq, method, n, reference, repeat: int):
+    """(median seconds, last solution) of build + FRF + modes over ``repeat`` runs."""
+    samples, solution = [], None
+    for _ in range(max(1, repeat)):
+        start = time.perf_counter()
+        solution = solve(settings, eq, method, n, reference.frequency_grid_hz,
+                         reference.damping, reference.f_max_hz, reference.modes_in_band)
+        samples.append(time.perf_counter() - start)
+    return float(np.median(samples)), solution
+
+
+def sweep(settings, eq, reference, repeat: int = 3, progress=None, choice=None) -> list[dict]:
+    """One row (dict of :data:`COLUMNS`) per method and discretisation of :data:`SWEEP`, and
+    one for ``auto``'s ``choice`` when the sweep does not have it (``auto`` True on its row)."""
+    estimator = Estimator(settings, eq, reference.f_max_hz, reference.damping)
+    entries = list(SWEEP)
+    picked = None if choice is None else (choice.method, choice.elements_per_cable)
+    if picked is not None and picked not in entries:
+        entries.append(picked)
+    rows = []
+    for method, n in (progress or iter)(entries):
+        row = {'method': method, 'elements_per_cable': n, 'auto': (method, n) == picked}
+        try:
+            seconds, solution = time_solution(settings, eq, method, n, reference, repeat)
+            measured = measure_error(settings, eq, method, n, reference, solution)
+        except (DynamicsError, ValueError, np.linalg.LinAlgError) as exc:
+            rows.append({**row, 'valid': False, 'note': str(exc).splitlines()[0]})
+            continue
+        estimate = estimator.estimate(method, n)
+        note = measured.note
+        if row['auto']:
+            note = f"auto's pick at model.tolerance {100 * settings.tolerance:g} %" \
+                + (f'; {note}' if note else '')
+        row.update(dofs=measured.dofs, freq_error_pct=100 * measured.freq_error,
+                   frf_error_pct=100 * measured.frf_error, time_s=seconds,
+                   modes_in_band=measured.modes_in_band, missed_modes=measured.missed_modes,
+                   estimated_freq_error_pct=100 * estimate.freq_error,
+                   estimated_frf_error_pct=100 * estimate.frf_error, valid=measured.valid,
+                   note=note)
+        rows.append(row)
+    return rows
+
+
+def pareto(times, errors) -> np.ndarray:
+    """Indices of the points no other point beats in both time and error, by time."""
+    times, errors = np.asarray(times, float), np.asarray(errors, float)
+    order = np.lexsort((errors, times))
+    front, best = [], math.inf
+    for i in order:
+        if errors[i] < best:
+            front.append(i)
+            best = errors[i]
+    return np.array(front, dtype=int)
+
+
+def label(row) -> str:
+    n = row['elements_per_cable']
+    return f"{row['method']} {n}" if row['method'] in ('fem', 'fem_sag') else row['method']
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, 'w', newline='', encoding='utf-8') as stream:
+        writer = csv.DictWriter(stream, fieldnames=COLUMNS, extrasaction='ignore')
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: (f'{v:.6g}' if isinstance(v, float) else v)
+                             for k, v in row.items()})
+
+
+def _label_offsets(times, errors) -> list[tuple[float, float]]:
+    """Label offsets (points) that stack labels of points drawn on top of each other."""
+    placed: list[tuple[float, float, int]] = []
+    offsets = []
+    for t, e in zip(np.log10(times), np.log10(errors)):
+        near = sum(1 for pt, pe, _ in placed if abs(pt - t) < 0.3 and abs(pe - e) < 0.12)
+        placed.append((t, e, near))
+        offsets.append((4.0, 3.0 - 9.0 * near))
+    return offsets
+
+
+def plot(rows: list[dict], reference, path: Path, scene_name: str,
+         tolerance: float | None = None) -> None:
+    """Two log-log panels (frequency error, FRF error) against time, Pareto fronts marked,
+    the row ``auto`` picked (at ``tolerance``) starred."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    ok = [r for r in rows if 'time_s' in r]
+    colors = {'spring': 'tab:gray', 'fem': 'tab:blue', 'catenary': 'tab:olive',
+              'catenary_exact': 'tab:green', 'fem_sag': 'tab:red', 'dsm': 'black'}
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.6), sharex=True)
+    times = 1e3 * np.array([r['time_s'] for r in ok])
+    for ax, key, what in ((axes[0], 'freq_error_pct', 'natural frequencies in the band'),
+                          (axes[1], 'frf_error_pct', 'damped FRF of the centroid')):
+        errors = np.maximum([r[key] for r in ok], FLOOR_PCT)
+        for r, t, e, offset in zip(ok, times, errors, _label_offsets(times, errors)):
+            ax.scatter(t, e, color=colors.get(r['method'], 'tab:purple'), s=28, zorder=3)
+            ax.annotate(label(r), (t, e), textcoords='offset points', xytext=offset,
+                        fontsize=7)
+        front = pareto(times, errors)
+        ax.step(times[front], errors[front], where='post', color='tab:orange', lw=1.5,
+                zorder=2, label='Pareto front')
+        for i in [i for i, r in enumerate(ok) if r.get('auto')]:
+            ax.scatter(times[i], errors[i], marker='*', s=260, facecolor='none',
+                       edgecolor='tab:purple', zorder=4, label='auto' + (
+                           f' at {100 * tolerance:g} %' if tolerance else ''))
+        ax.axhline(100.0, color='0.6', lw=0.8, ls=':')
+        ax.set_xscale('log')
+        ax.set_yscale('log')
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f'{v:g}'))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel('compute time: build + FRF + modes in the band (ms)')
+        ax.set_ylabel(f'max relative error, {what} (%)')
+        ax.grid(True, which='both', alpha=0.25)
+        ax.legend(loc='lower left', fontsize=8)
+    axes[0].text(0.99, 0.99, '100 % = modes missed', transform=axes[0].transAxes,
+                 ha='right', va='top', fontsize=7, color='0.4')
+    fig.suptitle(f'{scene_name}: error over 0-{reference.f_max_hz:g} Hz against '
+                 f'{reference.label}', fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def summary(rows: list[dict], reference) -> str:
+    lines = [f'reference: {reference.label}; {reference.modes_in_band} modes in '
+             f'0-{reference.f_max_hz:g} Hz',
+             f"{'method':>15} {'n':>3} {'dofs':>5} {'freq err %':>11} {'FRF err %':>10} "
+             f"{'time ms':>8}"]
+    for r in rows:
+        if 'time_s' not in r:
+            lines.append(f"{r['method']:>15} {r['elements_per_cable']:>3} failed: {r['note']}")
+            continue
+        lines.append(f"{r['method']:>15} {r['elements_per_cable']:>3} {r['dofs']:>5} "
+                     f"{r['freq_error_pct']:>11.4g} {r['frf_error_pct']:>10.4g} "
+                     f"{1e3 * r['time_s']:>8.2f}" + ('  <- auto' if r.get('auto') else ''))
+    return '\n'.join(lines)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog='cdpr_tradeoff', description=__doc__.split('\n')[0])
+    parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
+    parser.add_argument('--f-max', type=float, help='top of the band (Hz; default frf.f_max_hz)')
+    parser.add_argument('--tolerance', type=float,
+                        help='model.tolerance for the auto pick marked on the chart')
+    parser.add_argument('--repeat', type=int, default=3, help='timed runs per model (median)')
+    parser.add_argument('--csv', type=Path, required=True, help='write the table here')
+    parser.add_argument('--plot', type=Path, required=True, help='write the PNG chart here')
+    return parser.parse_args(argv)
+
+
+def run(args: argparse.Namespace, progress=None):
+    settings = load_settings(args.config)
+    changes = {'f_max_hz': args.f_max, 'tolerance': args.tolerance}
+    settings = settings.replace(**{k: v for k, v in changes.items() if v is not None})
+    if args.repeat < 1:
+        raise ConfigError('--repeat must be at least 1')
+    eq = equilibrium(settings)
+    try:
+        reference = reference_solution(settings, eq)
+        choice = choose_model(settings, eq, damping=reference.damping)
+    except (DynamicsError, ValueError) as exc:
+        raise AnalysisError(f'no reference for this scene: {str(exc).splitlines()[0]}') \
+            from None
+    rows = sweep(settings, eq, reference, args.repeat, progress, choice)
+    return settings, reference, choice, rows
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    from tqdm import tqdm
+
+    def progress(items):
+        return tqdm(items, desc='models', unit='model', leave=False, disable=None)
+    try:
+        settings, reference, choice, rows = run(args, progress)
+    except (ConfigError, AnalysisError, SelectionError) as exc:
+        print(f'cdpr_tradeoff: error: {exc}', file=sys.stderr)
+        return 1
+    write_csv(rows, args.csv)
+    name = Path(args.config).stem if args.config else 'paper_cdpr'
+    plot(rows, reference, args.plot, name, settings.tolerance)
+    print(summary(rows, reference))
+    print(choice.reason)
+    print(f'wrote {args.csv} and {args.plot}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,27 @@
+"""cdpr_bench --quick runs every stage (no timing is asserted: this machine is shared)."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
+    exe = Path(sys.executable).with_name('cdpr_bench')
+    out = subprocess.run([str(exe), '--quick', '--json', str(tmp_path / 'b.json')],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    result = json.loads((tmp_path / 'b.json').read_text())
+    assert result['qp']['warm']['p50_s'] > 0
+    rows = {(r['method'], r['elements_per_cable']): r for r in result['models']}
+    assert not [r for r in rows.values() if 'error' in r]
+    assert {'spring', 'fem', 'catenary', 'catenary_exact', 'fem_sag', 'dsm'} <= \
+        {m for m, _ in rows}
+    row = rows[('fem', 16)]            # quick mode: the naive dense solve at n = 16 only
+    # the condensed FRF is the naive dense one, to round-off
+    assert row['naive_max_relative_difference'] < 1e-9
+    assert np.isfinite(row['naive_over_condensed'])
+    assert rows[('fem', 64)]['dofs'] == 1515
+    assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'fem_sag'}
+    assert result['node_compute_per_wrench']['p99_ms'] > 0

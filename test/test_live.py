@@ -1,0 +1,89 @@
+"""LivePredictor, the node's ROS-free core: rebuilds, zero-order hold, auto caching."""
+import dataclasses
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium
+from cdpr_dynamics.config import load_settings
+from cdpr_dynamics.dynamics import Damping, Newmark
+from cdpr_dynamics.live import AUTO_RECHOOSE_M, LivePredictor
+
+
+@pytest.fixture(scope='module')
+def settings():
+    return load_settings().replace(method='fem', elements_per_cable=4)
+
+
+def test_constant_wrench_settles_to_static_deflection(settings):
+    predictor = LivePredictor(settings)
+    force = np.array([200.0, -100.0, 400.0])
+    k = build_system(settings, equilibrium(settings)).static_stiffness()
+    u = None
+    for i in range(2001):
+        u = predictor.advance(i * 1e-3, force)
+    assert_allclose(u, np.linalg.solve(k, force), rtol=1e-6)
+
+
+def test_zero_order_hold_integrates_the_previous_wrench(settings):
+    """Advancing to t_(k+1) uses the wrench of t_k over the interval, in dt sub-steps."""
+    predictor = LivePredictor(settings)
+    system = predictor.system
+    k, m = system.matrices()
+    reference = Newmark(k, m, Damping(settings.damping_mass_factor,
+                                      settings.damping_stiffness_factor), settings.dt_s)
+    load = np.zeros(k.shape[0])
+    load[2] = 1000.0
+    predictor.advance(0.0, load[:3])
+    got = predictor.advance(0.0105, [0.0, 0.0, -5000.0])   # 10 steps of 1 ms, 0.5 ms carried
+    for _ in range(10):
+        expected = reference.step(load)
+    assert_allclose(got, expected[:3], rtol=1e-12)
+    got = predictor.advance(0.0120, [0.0, 0.0, 0.0])        # 0.5 + 1.5 ms: 2 steps at -5000 N
+    load[2] = -5000.0
+    for _ in range(2):
+        expected = reference.step(load)
+    assert_allclose(got, expected[:3], rtol=1e-12)
+
+
+def test_out_of_order_stamp_is_refused_and_state_kept(settings):
+    predictor = LivePredictor(settings)
+    predictor.advance(1.0, [0.0, 0.0, 100.0])
+    u = predictor.advance(1.01, [0.0, 0.0, 100.0])
+    with pytest.raises(ValueError, match='older than the last wrench'):
+        predictor.advance(1.005, [0.0, 0.0, 100.0])
+    assert_allclose(predictor.integrator.u[:3], u)
+
+
+def test_pose_within_tolerance_does_not_rebuild_and_bad_pose_keeps_state(settings):
+    predictor = LivePredictor(settings, pose_tolerance_m=1e-3)
+    system = predictor.system
+    assert not predictor.update_pose([0.0005, 0.0, 1.25]).rebuilt
+    assert predictor.system is system
+    assert predictor.update_pose([0.01, 0.0, 1.25]).rebuilt
+    moved = predictor.system
+    with pytest.raises(AnalysisError, match='outside the frame'):
+        predictor.update_pose([3.0, 0.0, 1.25])
+    assert predictor.system is moved
+
+
+def test_invalid_model_falls_back_to_spring_with_a_warning(settings):
+    """A 0.5 N end tension cannot hold 10.8 N of cable: no catenary exists, so catenary_exact
+    is invalid; spring needs only T > 0 and takes over, saying why."""
+    s = settings.replace(method='catenary_exact', tension_min_n=0.5)
+    s = s.replace(cable=dataclasses.replace(s.cable, weight_per_length_n_per_m=5.0))
+    update = LivePredictor(s).last_update
+    assert update.method == 'spring'
+    assert any('too slack to hold itself' in w for w in update.warnings)
+    assert update.warnings[-1] == 'method catenary_exact failed for this state; fell back to spring'
+
+
+def test_auto_choice_is_kept_for_small_moves_and_redone_for_large_ones(settings):
+    predictor = LivePredictor(settings.replace(method='auto'))
+    choice = predictor._choice
+    assert choice is not None and predictor.last_update.method == choice.method
+    predictor.update_pose([0.01, 0.0, 1.25])
+    assert predictor._choice is choice
+    predictor.update_pose([2 * AUTO_RECHOOSE_M, 0.0, 1.25])
+    assert predictor._choice is not choice
