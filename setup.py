@@ -30,6 +30,7 @@ setup(
             'cdpr_record = cdpr_dynamics.cli.record:main',
             'cdpr_demo = cdpr_dynamics.cli.demo:main',
             'cdpr_tradeoff = cdpr_dynamics.cli.tradeoff:main',
+            'cdpr_replay = cdpr_dynamics.cli.replay:main',
         ],
     },
 )

@@ -12,6 +12,9 @@ Timestamps: ``log_time`` is the receive time on the recorder node's clock; ``pub
 publisher's send time (the DDS source timestamp, as rosbag2 records it), or the receive time
 where the middleware gives none. Header stamps stay in the messages.
 
+:class:`RecordingWriter` writes given messages (no ROS graph) with the same conventions, under
+a temporary name renamed on success: for tools that produce recordings (``cdpr_replay``).
+
 Reading (:func:`read_messages`, :func:`recording_info`): files written here or by
 ``ros2 bag record -s mcap``; every problem is a :class:`RecordingError` with a one-line reason.
 """
@@ -60,6 +63,17 @@ class RecordedMessage(NamedTuple):
     type: str
     log_time_ns: int
     message: Any
+
+
+class RawRecordedMessage(NamedTuple):
+    """One message read back with ``raw=True``: also its send time and its CDR bytes."""
+
+    topic: str
+    type: str
+    log_time_ns: int
+    message: Any
+    publish_time_ns: int
+    data: bytes
 
 
 @dataclass
@@ -444,6 +458,321 @@ def _count_chunks(path: Path) -> int:
         return 0
 
 
+# ----------------------------------------------------------------------------- serialisation
+
+_CDR_SIZES = {
+    'boolean': 1, 'octet': 1, 'char': 1, 'int8': 1, 'uint8': 1, 'wchar': 2,
+    'int16': 2, 'uint16': 2, 'short': 2, 'unsigned short': 2,
+    'int32': 4, 'uint32': 4, 'long': 4, 'unsigned long': 4, 'float': 4,
+    'int64': 8, 'uint64': 8, 'long long': 8, 'unsigned long long': 8, 'double': 8,
+}
+
+
+class _Unsized(Exception):
+    """A field whose CDR layout is not worked out here (wide strings, long double)."""
+
+
+def serialize(message) -> bytes:
+    """CDR bytes of an rclpy message exactly as a DDS publisher sends them.
+
+    ``rclpy.serialization.serialize_message`` (rmw_fastrtps, Jazzy) returns the *estimated*
+    size: bytes of uninitialised memory after the message where it holds an empty sequence of
+    8-byte numbers (``JointState.velocity``), and uninitialised alignment padding. ``rosbags``
+    rejects such a message ("CDR message size mismatch") and files would differ run to run.
+    Here the buffer is cut to the message's CDR length and the padding zeroed, which is what
+    arrives through DDS. Types with wide strings are returned as rclpy gives them.
+    """
+    from rclpy.serialization import serialize_message
+
+    raw = serialize_message(message)
+    pads: list = []
+    try:
+        end = 4 + _cdr_struct(message, 0, pads)   # 4: the encapsulation header
+    except _Unsized:
+        return raw
+    if end > len(raw):   # never cut into the message itself
+        return raw
+    data = bytearray(raw[:end])
+    for start, stop in pads:
+        data[4 + start:4 + stop] = bytes(stop - start)
+    return bytes(data)
+
+
+def _cdr_align(pos: int, size: int, pads: list) -> int:
+    aligned = -(-pos // size) * size
+    if aligned > pos:
+        pads.append((pos, aligned))
+    return aligned
+
+
+def _cdr_struct(message, pos: int, pads: list) -> int:
+    fields = message.get_fields_and_field_types()
+    if not fields:   # an empty message carries one uint8 ("structure_needs_at_least_one_member")
+        return pos + 1
+    for name, slot in zip(fields, message.SLOT_TYPES):
+        pos = _cdr_field(getattr(message, name), slot, pos, pads)
+    return pos
+
+
+def _cdr_field(value, slot, pos: int, pads: list) -> int:
+    """End of a field starting at ``pos`` (offsets from the start of the CDR data)."""
+    from rosidl_parser import definition as d
+
+    if isinstance(slot, d.BasicType):
+        size = _CDR_SIZES.get(slot.typename)
+        if size is None:
+            raise _Unsized(slot.typename)
+        return _cdr_align(pos, size, pads) + size
+    if isinstance(slot, d.AbstractWString):
+        raise _Unsized('wstring')
+    if isinstance(slot, d.AbstractString):
+        return _cdr_align(pos, 4, pads) + 4 + len(value.encode('utf-8')) + 1
+    if isinstance(slot, d.NamespacedType):
+        return _cdr_struct(value, pos, pads)
+    if isinstance(slot, d.AbstractSequence):
+        pos = _cdr_align(pos, 4, pads) + 4
+    elif not isinstance(slot, d.Array):
+        raise _Unsized(type(slot).__name__)
+    count = len(value)
+    if count == 0:
+        return pos
+    item = slot.value_type
+    if isinstance(item, d.BasicType):
+        size = _CDR_SIZES.get(item.typename)
+        if size is None:
+            raise _Unsized(item.typename)
+        return _cdr_align(pos, size, pads) + count * size
+    for element in value:
+        pos = _cdr_field(element, item, pos, pads)
+    return pos
+
+
+# ----------------------------------------------------------------------------- file writer
+
+
+class RecordingWriter:
+    """Writes given messages to a new MCAP file with the recorder's conventions, no ROS graph.
+
+    For tools that make recordings themselves (``cdpr_replay``, the test scenarios): same
+    profile, ``ros2msg`` schemas from the installed ``.msg`` files, ``cdr`` channels with
+    rosbag2's channel metadata, indexed chunks and the ``rosbag2`` metadata record.
+
+    The file is written under a hidden temporary name in the destination folder
+    (``.NAME.partial-XXXX``) and renamed to ``path`` only by :meth:`close`, so a file at
+    ``path`` is always complete; :meth:`abort` (or an exception in a ``with`` block) deletes
+    the temporary file. An existing ``path`` is refused unless ``force``, at start and again at
+    the rename. Not thread-safe.
+    """
+
+    def __init__(self, path, *, force: bool = False, chunk_size: int = DEFAULT_CHUNK_SIZE,
+                 compression: str = 'none', library: str | None = None):
+        import tempfile
+
+        self.path = Path(path)
+        self._force = force
+        compressions = {'none': CompressionType.NONE, 'zstd': CompressionType.ZSTD,
+                        'lz4': CompressionType.LZ4}
+        if compression not in compressions:
+            raise RecordingError(f'unknown compression {compression!r} (none, zstd, lz4)')
+        folder = self.path.parent
+        if not folder.is_dir():
+            raise RecordingError(f'cannot write {self.path}: no directory {folder}')
+        if self.path.is_dir():
+            raise RecordingError(f'cannot write {self.path}: it is a directory')
+        if os.path.lexists(self.path) and not force:
+            raise RecordingError(
+                f'{self.path} exists; not overwriting it (use --force to replace it)')
+        try:
+            fd, temp = tempfile.mkstemp(prefix=f'.{self.path.name}.partial-', dir=folder)
+        except OSError as err:
+            raise RecordingError(f'cannot write {self.path}: {err.strerror or err}') from None
+        self.temp_path = Path(temp)
+        mask = os.umask(0)
+        os.umask(mask)
+        os.fchmod(fd, 0o666 & ~mask)   # mkstemp's 0600 would outlive the rename
+        self._stream = os.fdopen(fd, 'wb')
+        self._writer = Writer(
+            self._stream, chunk_size=int(chunk_size), compression=compressions[compression],
+            index_types=IndexType.ALL, repeat_channels=True, repeat_schemas=True,
+            use_chunking=True, use_statistics=True, use_summary_offsets=True, enable_crcs=True)
+        self._writer.start(profile=mcap_schema.PROFILE,
+                           library=library or f'cdpr_dynamics {_VERSION} (mcap-python)')
+        self._schemas: dict[str, int] = {}
+        self._topics: dict[str, dict] = {}
+        self._metadata: list[tuple[str, dict]] = []
+        self._start_ns = None
+        self._end_ns = 0
+        self._state = 'open'
+        self.summary: RecordingSummary | None = None
+
+    @property
+    def topic_counts(self) -> dict:
+        """Topic -> messages written so far."""
+        return {name: t['count'] for name, t in self._topics.items()}
+
+    def add_topic(self, name: str, type_name: str, offered_qos=(),
+                  type_hash: str | None = None) -> None:
+        """Declare a topic (absolute name) of ``type_name`` (``pkg/msg/Type`` or a message
+        class). ``offered_qos``: the publishers' QoS, as rclpy profiles, dicts of
+        :func:`mcap_schema.qos_profile_to_dict` or the YAML text of a channel's
+        ``offered_qos_profiles``; ``type_hash`` defaults to the installed type's."""
+        self._check_open()
+        if not isinstance(type_name, str):
+            type_name = type_name_of(type_name)
+        if name in self._topics:
+            if self._topics[name]['type'] != type_name:
+                raise RecordingError(f'topic {name} declared twice with different types')
+            return
+        try:
+            mcap_schema.split_type_name(type_name)
+            definition = mcap_schema.message_definition(type_name)
+            if type_hash is None:
+                type_hash = mcap_schema.type_hash(type_name)
+        except mcap_schema.SchemaError as err:
+            raise RecordingError(str(err)) from None
+        text = None
+        if isinstance(offered_qos, str):   # a copied channel keeps its text verbatim
+            text = offered_qos or '[]'
+            offered_qos = _qos_from_yaml(offered_qos)
+        qos = [q if isinstance(q, Mapping) else mcap_schema.qos_profile_to_dict(q)
+               for q in offered_qos]
+        if text is None:
+            text = mcap_schema.offered_qos_profiles_yaml(qos)
+        schema_id = self._schemas.get(type_name)
+        if schema_id is None:
+            schema_id = self._writer.register_schema(
+                name=type_name, encoding=mcap_schema.SCHEMA_ENCODING,
+                data=definition.encode('utf-8'))
+            self._schemas[type_name] = schema_id
+        channel_id = self._writer.register_channel(
+            topic=name, message_encoding=mcap_schema.MESSAGE_ENCODING, schema_id=schema_id,
+            metadata={'offered_qos_profiles': text, 'topic_type_hash': type_hash})
+        self._topics[name] = {'type': type_name, 'channel': channel_id, 'qos': qos,
+                              'hash': type_hash, 'count': 0, 'sequence': 0}
+
+    def write(self, topic: str, message, log_time_ns: int,
+              publish_time_ns: int | None = None) -> None:
+        """Add one message: CDR ``bytes`` as they are, or an rclpy message (serialised)."""
+        self._check_open()
+        entry = self._topics.get(topic)
+        if entry is None:
+            raise RecordingError(f'topic {topic} was not declared with add_topic')
+        if isinstance(message, (bytes, bytearray, memoryview)):
+            data = bytes(message)
+        else:
+            data = serialize(message)
+        log_time_ns = int(log_time_ns)
+        entry['sequence'] += 1
+        self._writer.add_message(
+            channel_id=entry['channel'], log_time=log_time_ns, data=data,
+            publish_time=log_time_ns if publish_time_ns is None else int(publish_time_ns),
+            sequence=entry['sequence'] & 0xFFFFFFFF)
+        entry['count'] += 1
+        self._start_ns = log_time_ns if self._start_ns is None else min(self._start_ns,
+                                                                        log_time_ns)
+        self._end_ns = max(self._end_ns, log_time_ns)
+
+    def add_metadata(self, name: str, values: Mapping[str, str]) -> None:
+        """A metadata record (string keys and values), written when the file is finished."""
+        self._check_open()
+        self._metadata.append((name, {str(k): str(v) for k, v in values.items()}))
+
+    def close(self) -> RecordingSummary:
+        """Finish the file (rosbag2 metadata, summary, index), then give it its name."""
+        if self._state == 'closed':
+            return self.summary
+        self._check_open()
+        try:
+            for name, values in self._metadata:
+                self._writer.add_metadata(name, values)
+            self._writer.add_metadata(mcap_schema.ROSBAG2_METADATA_NAME, {
+                'serialized_metadata': mcap_schema.rosbag2_serialized_metadata(
+                    self.path.name,
+                    [{'name': name, 'type': t['type'], 'offered_qos_profiles': t['qos'],
+                      'type_description_hash': t['hash'], 'message_count': t['count']}
+                     for name, t in self._topics.items()],
+                    self._start_ns or 0, self._end_ns)})
+            self._writer.finish()
+            size = self._stream.tell()
+            self._stream.flush()
+            os.fsync(self._stream.fileno())
+            self._stream.close()
+            self._publish()
+        except RecordingError:
+            self.abort()
+            raise
+        except OSError as err:
+            self.abort()
+            raise RecordingError(f'cannot write {self.path}: {err.strerror or err}') from None
+        self._state = 'closed'
+        self.summary = RecordingSummary(
+            path=self.path, message_count=sum(self.topic_counts.values()), bytes=size,
+            chunk_count=_count_chunks(self.path), topics=self.topic_counts,
+            start_ns=self._start_ns or 0, end_ns=self._end_ns)
+        return self.summary
+
+    def _publish(self) -> None:
+        """Rename the finished temporary file to ``path`` (no clobbering unless ``force``)."""
+        if self._force:
+            os.replace(self.temp_path, self.path)
+            return
+        try:
+            os.link(self.temp_path, self.path)   # fails if path appeared meanwhile
+        except FileExistsError:
+            raise RecordingError(
+                f'{self.path} exists; not overwriting it (use --force to replace it)') from None
+        except OSError:   # a file system without hard links: check, then rename
+            if os.path.lexists(self.path):
+                raise RecordingError(f'{self.path} exists; not overwriting it '
+                                     '(use --force to replace it)') from None
+            os.replace(self.temp_path, self.path)
+            return
+        os.unlink(self.temp_path)
+
+    def abort(self) -> None:
+        """Drop the file being written; nothing appears at ``path``. Idempotent."""
+        if self._state != 'open':
+            return
+        self._state = 'aborted'
+        try:
+            self._stream.close()
+        except OSError:
+            pass
+        try:
+            os.unlink(self.temp_path)
+        except OSError:
+            pass
+
+    def _check_open(self) -> None:
+        if self._state != 'open':
+            raise RecordingError(f'{self.path}: writer already {self._state}')
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+        return False
+
+
+def _qos_from_yaml(text: str) -> list:
+    """The profiles of an ``offered_qos_profiles`` channel metadata text ([] if unreadable)."""
+    import yaml
+
+    try:
+        profiles = yaml.safe_load(text or '[]')
+    except yaml.YAMLError:
+        return []
+    keys = ('history', 'depth', 'reliability', 'durability', 'deadline', 'lifespan',
+            'liveliness', 'liveliness_lease_duration', 'avoid_ros_namespace_conventions')
+    if not isinstance(profiles, list):
+        return []
+    return [p for p in profiles if isinstance(p, Mapping) and all(k in p for k in keys)]
+
+
 # ----------------------------------------------------------------------------- reading
 
 _MAGIC = b'\x89MCAP0\r\n'
@@ -634,7 +963,14 @@ class _Decoders:
         return decoder
 
 
-def read_messages(path, topics=None, *, allow_incomplete: bool = False
+def _recorded(topic: str, type_name: str, record: Message, message, raw: bool):
+    if raw:
+        return RawRecordedMessage(topic, type_name, record.log_time, message,
+                                  record.publish_time, bytes(record.data))
+    return RecordedMessage(topic, type_name, record.log_time, message)
+
+
+def read_messages(path, topics=None, *, allow_incomplete: bool = False, raw: bool = False
                   ) -> Iterator[RecordedMessage]:
     """Yield (topic, type name, log_time_ns, message) in log-time order.
 
@@ -643,7 +979,9 @@ def read_messages(path, topics=None, *, allow_incomplete: bool = False
     dynamic objects otherwise). Raises :class:`RecordingError` (one line) for a missing, empty,
     non-MCAP, truncated or corrupt file, a topic not in the file, a topic of another type, a
     message that does not decode. ``allow_incomplete=True`` reads a file whose recorder was
-    killed: the messages of the chunks written before the cut, in file order.
+    killed: the messages of the chunks written before the cut, in file order. ``raw=True``
+    yields :class:`RawRecordedMessage` (publish time and CDR bytes as well), e.g. to copy
+    messages into another file unchanged.
     """
     wanted = None if topics is None else _normalise_topics(topics)
     path, stream = _open(path)
@@ -667,9 +1005,8 @@ def read_messages(path, topics=None, *, allow_incomplete: bool = False
                     return
                 except (McapError, struct.error, ValueError, zlib.error, KeyError) as err:
                     raise RecordingError(f'{path}: corrupt MCAP data ({_reason(err)})') from None
-                yield RecordedMessage(channel.topic, schema.name if schema else '',
-                                      message.log_time,
-                                      decoders.decode(schema, channel, message))
+                yield _recorded(channel.topic, schema.name if schema else '', message,
+                                decoders.decode(schema, channel, message), raw)
             return
         # incomplete file: scan what is there
         info = recording_info(path)
@@ -690,8 +1027,8 @@ def read_messages(path, topics=None, *, allow_incomplete: bool = False
                 if selected is not None and channel.topic not in selected:
                     continue
                 schema = schemas.get(channel.schema_id)
-                yield RecordedMessage(channel.topic, schema.name if schema else '',
-                                      record.log_time, decoders.decode(schema, channel, record))
+                yield _recorded(channel.topic, schema.name if schema else '', record,
+                                decoders.decode(schema, channel, record), raw)
 
 
 def recover_recording(source, destination, *, force: bool = False) -> int:
@@ -732,7 +1069,8 @@ def recover_recording(source, destination, *, force: bool = False) -> int:
 
 
 __all__ = [
-    'DEFAULT_CHUNK_INTERVAL_S', 'DEFAULT_CHUNK_SIZE', 'Recorder', 'RecordedMessage',
-    'RecordingError', 'RecordingInfo', 'RecordingSummary', 'TopicInfo', 'message_class',
+    'DEFAULT_CHUNK_INTERVAL_S', 'DEFAULT_CHUNK_SIZE', 'RawRecordedMessage', 'Recorder',
+    'RecordedMessage', 'RecordingError', 'RecordingInfo', 'RecordingSummary', 'RecordingWriter',
+    'TopicInfo', 'message_class', 'serialize',
     'read_messages', 'recording_info', 'recover_recording', 'type_name_of',
 ]

@@ -7,13 +7,15 @@ number is checked against the library called directly: a mirror LivePredictor fe
 node should accept (predictions and tensions must agree to rounding), a fresh equilibrium (the
 tension QP), K^-1 f for a constant wrench, frf_arrays and cdpr_analyze's JSON for the service.
 
-Traffic recording: set CDPR_RECORD_DIR=<folder> to record every node's topics and service
-events to <folder>/<test>.mcap with cdpr_dynamics.recording (the hook is :func:`_recorder`).
+Traffic recording: every node's topics and service events are recorded to
+test_output/test_node_dds/<harness>.mcap (or $CDPR_RECORD_DIR) with cdpr_dynamics.recording;
+the folder is removed when every test of the module passed (kept with CDPR_KEEP_TEST_OUTPUT).
 """
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -38,6 +40,7 @@ from sensor_msgs.msg import JointState
 from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium, frf_arrays
 from cdpr_dynamics.config import load_settings
 from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.recording import recording_info
 from cdpr_dynamics.node_process import (isolated_env, reserve_domain_id, rss_kib, start_node,
                                         stop_process)
 from msg_adapters.diagnostics import ERROR, OK, WARN, read_statuses
@@ -57,16 +60,17 @@ START_S = 1000.0          # simulated time of the first input
 NAN, INF = float('nan'), float('inf')
 
 
+RECORD_DIR = Path(os.environ.get('CDPR_RECORD_DIR') or
+                  Path(__file__).resolve().parents[1] / 'test_output' / 'test_node_dds')
+RECORDED_TOPICS = ['pose', 'wrench', 'predicted_displacement', 'cable_tensions', '/diagnostics',
+                   'frequency_response/_service_event', '/parameter_events']
+
+
 def _recorder(node, name: str):
-    """Hook: a cdpr_dynamics.recording.Recorder of all node traffic, or None."""
-    folder = os.environ.get('CDPR_RECORD_DIR')
-    if not folder:
-        return None
+    """A cdpr_dynamics.recording.Recorder of all the traffic of one node under test."""
     from cdpr_dynamics import recording
-    Path(folder).mkdir(parents=True, exist_ok=True)
-    topics = ['pose', 'wrench', 'predicted_displacement', 'cable_tensions', '/diagnostics',
-              'frequency_response/_service_event', '/parameter_events']
-    return recording.Recorder(node, Path(folder) / f'{name}.mcap', topics, force=True)
+    RECORD_DIR.mkdir(parents=True, exist_ok=True)
+    return recording.Recorder(node, RECORD_DIR / f'{name}.mcap', RECORDED_TOPICS, force=True)
 
 
 class Harness:
@@ -283,9 +287,11 @@ class Harness:
 # ------------------------------------------------------------------------------- fixtures
 
 @pytest.fixture(scope='module')
-def ros(tmp_path_factory):
+def ros(tmp_path_factory, request):
     """This process localhost-only, logs in a temporary folder; each Harness (node under test
-    and the test's rclpy context) then takes a ROS domain of its own."""
+    and the test's rclpy context) then takes a ROS domain of its own. The recordings of the
+    module are removed at its end if no test failed."""
+    failed_before = request.session.testsfailed
     log_dir = tmp_path_factory.mktemp('ros_log')
     env = isolated_env(0, log_dir)
     patch = pytest.MonkeyPatch()
@@ -295,6 +301,9 @@ def ros(tmp_path_factory):
         patch.delenv(name, raising=False)
     yield {'log_dir': log_dir}
     patch.undo()
+    if request.session.testsfailed == failed_before and not os.environ.get(
+            'CDPR_KEEP_TEST_OUTPUT') and not os.environ.get('CDPR_RECORD_DIR'):
+        shutil.rmtree(RECORD_DIR, ignore_errors=True)
 
 
 @pytest.fixture(scope='module')
@@ -304,6 +313,11 @@ def paper(ros):
     yield harness
     status = harness.close()
     assert status == 0, f'dynamics_node exited with {status}: {harness.log_tail()}'
+    # every kind of traffic of the module's tests is in the recording, readable
+    info = recording_info(RECORD_DIR / 'paper.mcap')
+    counts = {name.lstrip('/'): topic.message_count for name, topic in info.topics.items()}
+    assert info.complete and all(counts.get(t.lstrip('/'), 0) > 0 for t in RECORDED_TOPICS[:6]), \
+        counts
 
 
 def library_tensions(settings, position, quaternion=(0, 0, 0, 1)):
