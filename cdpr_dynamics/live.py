@@ -8,7 +8,7 @@ offline replay and the live node give the same numbers by construction.
   otherwise nothing is recomputed. A failure leaves the last good state in place.
 * :meth:`LivePredictor.advance`: zero-order hold of the wrench: the wrench received at
   ``t_k`` acts from ``t_k`` until the next one; advancing to ``t_{k+1}`` integrates
-  ``round((t_{k+1} - t_k)/dt)`` Newmark steps of ``newmark.dt_s`` (the remainder carries over)
+  ``floor((t_{k+1} - t_k)/dt)`` Newmark steps of ``newmark.dt_s`` (the remainder carries over)
   and returns the centroid's displacement from equilibrium at ``t_{k+1}``.
 """
 from __future__ import annotations
@@ -59,8 +59,8 @@ class LivePredictor:
         self.wrench_set: WrenchSet | None = None
         self._choice = None            # the model auto chose, and where
         self._choice_position = None
-        self._t_s: float | None = None
-        self._remainder_s = 0.0
+        self._t_ns: int | None = None    # stamp of the held wrench
+        self._remainder_ns = 0
         self._load = None
         self.update_pose(settings.initial_position_m, rotation=settings.initial_rotation,
                          force=True)
@@ -185,36 +185,38 @@ class LivePredictor:
 
     # ----------------------------------------------------------------------------- time
 
-    def advance(self, t_s: float, force_n, moment_nm=(0.0, 0.0, 0.0)) -> np.ndarray:
-        """Integrate to ``t_s`` under the held previous wrench, then hold the new one.
+    def advance(self, stamp_ns: int, force_n, moment_nm=(0.0, 0.0, 0.0)) -> np.ndarray:
+        """Integrate to ``stamp_ns`` under the held previous wrench, then hold the new one.
 
-        Returns the centroid displacement (3,) m at ``t_s``. Raises ``ValueError`` for a stamp
+        Time is kept in integer nanoseconds: float seconds of a wall-clock stamp (~1.7e9 s)
+        resolve only ~0.2 us and would miscount the Newmark steps of a 5 ms interval.
+        Returns the centroid displacement (3,) m at the stamp. Raises ``ValueError`` for a stamp
         older than the last one. A gap over ``MAX_GAP_S`` restarts from rest (the transient of
         an old wrench is long gone or meaningless).
         """
+        stamp_ns = int(stamp_ns)
         nd = self.system.platform_dofs
         load = np.zeros(self.integrator.u.shape)
         load[:3] = force_n
         if nd == 6:
             load[3:6] = moment_nm
-        if self._t_s is not None and t_s < self._t_s:
-            raise ValueError(f'stamp {t_s:.6f} s is older than the last wrench '
-                             f'({self._t_s:.6f} s)')
-        if self._t_s is None or t_s - self._t_s > MAX_GAP_S or self._load is None \
+        if self._t_ns is not None and stamp_ns < self._t_ns:
+            raise ValueError(f'stamp {stamp_ns * 1e-9:.9f} s is older than the last wrench '
+                             f'({self._t_ns * 1e-9:.9f} s)')
+        if self._t_ns is None or stamp_ns - self._t_ns > MAX_GAP_S * 1e9 or self._load is None \
                 or self._load.shape != load.shape:
             self.integrator.reset()
-            self._remainder_s = 0.0
+            self._remainder_ns = 0
         else:
-            elapsed = t_s - self._t_s + self._remainder_s
-            steps = int(np.floor(elapsed / self.settings.dt_s + 1e-9))
-            self._remainder_s = elapsed - steps * self.settings.dt_s
+            dt_ns = max(1, round(self.settings.dt_s * 1e9))
+            steps, self._remainder_ns = divmod(stamp_ns - self._t_ns + self._remainder_ns, dt_ns)
             for _ in range(steps):
                 self.integrator.step(self._load)
-        self._t_s = t_s
+        self._t_ns = stamp_ns
         self._load = load
         return self.integrator.u[:3].copy()
 
     def reset_time(self) -> None:
         """Forget the wrench history (e.g. after a jump back in time)."""
-        self._t_s = None
+        self._t_ns = None
         self._load = None

@@ -356,7 +356,7 @@ class DynamicsNode(Node):
             reason = self.predictor.wrench_reason(wrench.force_n, wrench.moment_nm)
             if reason:
                 raise InvalidMessage(reason, 'infeasible')
-            u = self.predictor.advance(wrench.stamp_ns * 1e-9, wrench.force_n, wrench.moment_nm)
+            u = self.predictor.advance(wrench.stamp_ns, wrench.force_n, wrench.moment_nm)
         except InvalidMessage as exc:
             self._reject(self.wrench_health, exc.kind, str(exc))
             return
@@ -396,8 +396,8 @@ class DynamicsNode(Node):
     def _warm_up(self) -> None:
         """One throw-away wrench so the first real one does not pay first-call costs."""
         self.predictor.wrench_reason(np.zeros(3), np.zeros(3))
-        self.predictor.advance(0.0, np.zeros(3))
-        self.predictor.advance(self.settings.dt_s, np.zeros(3))
+        self.predictor.advance(0, np.zeros(3))
+        self.predictor.advance(round(self.settings.dt_s * 1e9), np.zeros(3))
         self.predictor.reset_time()
         displacement_message(np.zeros(3), self.frame_id, s_to_stamp(0.0))
 

@@ -155,7 +155,7 @@ class InputHandler:
             reason = self.predictor.wrench_reason(wrench.force_n, wrench.moment_nm)
             if reason:
                 raise InvalidMessage(reason, 'infeasible')
-            u = self.predictor.advance(wrench.stamp_ns * 1e-9, wrench.force_n, wrench.moment_nm)
+            u = self.predictor.advance(wrench.stamp_ns, wrench.force_n, wrench.moment_nm)
         except InvalidMessage:
             raise
         except NUMERIC_ERRORS as exc:

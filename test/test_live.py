@@ -22,7 +22,7 @@ def test_constant_wrench_settles_to_static_deflection(settings):
     k = build_system(settings, equilibrium(settings)).static_stiffness()
     u = None
     for i in range(2001):
-        u = predictor.advance(i * 1e-3, force)
+        u = predictor.advance(i * 1_000_000, force)
     assert_allclose(u, np.linalg.solve(k, force), rtol=1e-6)
 
 
@@ -35,12 +35,12 @@ def test_zero_order_hold_integrates_the_previous_wrench(settings):
                                       settings.damping_stiffness_factor), settings.dt_s)
     load = np.zeros(k.shape[0])
     load[2] = 1000.0
-    predictor.advance(0.0, load[:3])
-    got = predictor.advance(0.0105, [0.0, 0.0, -5000.0])   # 10 steps of 1 ms, 0.5 ms carried
+    predictor.advance(0, load[:3])
+    got = predictor.advance(10_500_000, [0.0, 0.0, -5000.0])   # 10 steps of 1 ms, 0.5 ms carried
     for _ in range(10):
         expected = reference.step(load)
     assert_allclose(got, expected[:3], rtol=1e-12)
-    got = predictor.advance(0.0120, [0.0, 0.0, 0.0])        # 0.5 + 1.5 ms: 2 steps at -5000 N
+    got = predictor.advance(12_000_000, [0.0, 0.0, 0.0])        # 0.5 + 1.5 ms: 2 steps at -5000 N
     load[2] = -5000.0
     for _ in range(2):
         expected = reference.step(load)
@@ -49,10 +49,10 @@ def test_zero_order_hold_integrates_the_previous_wrench(settings):
 
 def test_out_of_order_stamp_is_refused_and_state_kept(settings):
     predictor = LivePredictor(settings)
-    predictor.advance(1.0, [0.0, 0.0, 100.0])
-    u = predictor.advance(1.01, [0.0, 0.0, 100.0])
+    predictor.advance(1_000_000_000, [0.0, 0.0, 100.0])
+    u = predictor.advance(1_010_000_000, [0.0, 0.0, 100.0])
     with pytest.raises(ValueError, match='older than the last wrench'):
-        predictor.advance(1.005, [0.0, 0.0, 100.0])
+        predictor.advance(1_005_000_000, [0.0, 0.0, 100.0])
     assert_allclose(predictor.integrator.u[:3], u)
 
 
@@ -87,3 +87,15 @@ def test_auto_choice_is_kept_for_small_moves_and_redone_for_large_ones(settings)
     assert predictor._choice is choice
     predictor.update_pose([2 * AUTO_RECHOOSE_M, 0.0, 1.25])
     assert predictor._choice is not choice
+
+
+def test_wall_clock_stamps_count_the_same_steps_as_small_ones(settings):
+    """Stamps near 1.7e9 s (a real clock) give the predictions of stamps near 0: float seconds
+    there resolve only ~0.2 us and would drop Newmark steps of 5 ms intervals."""
+    predictions = []
+    for origin_ns in (0, 1_700_000_000_123_456_789):
+        predictor = LivePredictor(settings)
+        predictions.append([predictor.advance(origin_ns + k * 5_000_000,
+                                              [0.0, 0.0, 300.0 * np.sin(0.3 * k)])
+                            for k in range(200)])
+    assert_allclose(predictions[1], predictions[0], rtol=0, atol=1e-15)

@@ -185,7 +185,7 @@ class Harness:
         self.wrench_pub.publish(wrench_message(force, moment, frame, stamp))
         assert self.wait(lambda: key in self.predictions), \
             f'no prediction for the wrench at {key * 1e-9:.3f} s; alive={self.alive()}'
-        expected = self.mirror.advance(key * 1e-9, force, moment)
+        expected = self.mirror.advance(key, force, moment)
         np.testing.assert_allclose(self.predictions[key], expected, rtol=1e-9, atol=1e-15)
         return self.predictions[key]
 

@@ -54,7 +54,7 @@ def compute_per_wrench(settings, n: int = 20000) -> dict:
         w = read_wrench(msg, frame, last)
         if predictor.wrench_reason(w.force_n, w.moment_nm):
             raise RuntimeError('benchmark wrench infeasible')
-        u = predictor.advance(w.stamp_ns * 1e-9, w.force_n, w.moment_nm)
+        u = predictor.advance(w.stamp_ns, w.force_n, w.moment_nm)
         displacement_message(u, frame, msg.header.stamp)
         last = w.stamp_ns
         times.append(time.perf_counter() - start)
