@@ -83,6 +83,30 @@ PARAMETERS: tuple[Param, ...] = (
 )
 PARAMETER_BY_NAME = {p.name: p for p in PARAMETERS}
 
+#: Parameters of the node (and of cdpr_replay, which accepts inputs as the node does).
+NODE_PARAMETERS: tuple[Param, ...] = (
+    Param('node.pose_tolerance_m', 1e-4, 'a pose closer than this to the current one does not '
+          'rebuild the model (m)', 0.0, 1.0),
+    Param('node.angle_tolerance_rad', 1e-4, 'an orientation closer than this to the current one '
+          'does not rebuild the model (rad)', 0.0, 3.2),
+    Param('node.quaternion_tolerance', 1e-3, 'largest | |q| - 1 | accepted in a pose (then '
+          'normalised)', 0.0, 0.5),
+    Param('node.diagnostics_period_s', 1.0, 'period of /diagnostics when nothing changes (s); '
+          'changes are published within 0.1 s', 0.1, 60.0),
+    Param('node.wrench_queue_depth', 50, 'depth of the best-effort wrench subscription: how '
+          'many wrenches wait while the node is busy before the oldest are dropped', 1, 10000),
+    Param('node.frf_max_points', 20000, 'largest n_points a frequency_response call may ask '
+          'for (one call blocks the node for its duration)', 1, 1000000),
+    Param('node.frf_cache_size', 8, 'frequency responses kept per state (0: no cache)',
+          0, 1000),
+    Param('node.service_introspection', 'contents', 'service events on '
+          'frequency_response/_service_event: off, metadata or contents',
+          choices=('off', 'metadata', 'contents')),
+)
+NODE_PARAMETER_BY_NAME = {p.name: p for p in NODE_PARAMETERS}
+#: Parameters every rclpy node has; a params file may set them.
+ROS_NODE_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+
 
 @dataclass(frozen=True)
 class CableProperties:
@@ -199,7 +223,7 @@ def read_params_file(path: str | os.PathLike, node_name: str = 'cdpr_dynamics') 
 
 
 def _value(flat: dict, name: str):
-    param = PARAMETER_BY_NAME[name]
+    param = PARAMETER_BY_NAME.get(name) or NODE_PARAMETER_BY_NAME[name]
     value = flat.get(name, param.default)
     if isinstance(param.default, list):
         try:
@@ -250,7 +274,9 @@ def _check_settings(s: Settings) -> None:
 
 def settings_from_params(flat: dict) -> Settings:
     """Validated :class:`Settings` from flat dotted parameters (missing names take defaults)."""
-    unknown = sorted(k for k in flat if k not in PARAMETER_BY_NAME and not k.startswith('node.'))
+    unknown = sorted(k for k in flat if k not in PARAMETER_BY_NAME
+                     and k not in NODE_PARAMETER_BY_NAME and k not in ROS_NODE_PARAMETERS
+                     and not k.startswith('qos_overrides.'))
     if unknown:
         raise ConfigError(f'unknown parameter {unknown[0]}')
     v = {p.name: _value(flat, p.name) for p in PARAMETERS}
@@ -299,6 +325,11 @@ def settings_from_params(flat: dict) -> Settings:
     )
     _check_settings(settings)
     return settings
+
+
+def node_options(flat: dict) -> dict:
+    """Validated ``node.*`` parameters (defaults where absent), keyed by full name."""
+    return {p.name: _value(flat, p.name) for p in NODE_PARAMETERS}
 
 
 def load_settings(path: str | os.PathLike | None = None) -> Settings:

@@ -35,40 +35,19 @@ from sensor_msgs.msg import JointState
 
 from cdpr_dynamics.analysis import (AnalysisError, build_system, damping_for, damping_warnings,
                                     frf_arrays, safe)
-from cdpr_dynamics.config import (PARAMETER_BY_NAME, PARAMETERS, ConfigError, Param,
-                                  settings_from_params)
+from cdpr_dynamics.config import (NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS, ConfigError,
+                                  Param, settings_from_params)
 from cdpr_dynamics.dynamics import DynamicsError, natural_frequencies
 from cdpr_dynamics.live import LivePredictor
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import displacement_message
 from msg_adapters.frf_service import ARRAYS, pack_response, parse_request, settings_changes
 from msg_adapters.joint_state import tensions_message
-from msg_adapters.pose import read_pose
+from msg_adapters.inputs import NUMERIC_ERRORS, InputHandler, first_line
 from msg_adapters.validation import InvalidMessage, s_to_stamp
-from msg_adapters.wrench import read_wrench
 
 NODE_NAME = 'cdpr_dynamics'
 
-#: Node-only parameters (the analysis ones come from cdpr_dynamics.config.PARAMETERS).
-NODE_PARAMETERS = (
-    Param('node.pose_tolerance_m', 1e-4, 'a pose closer than this to the current one does not '
-          'rebuild the model (m)', 0.0, 1.0),
-    Param('node.angle_tolerance_rad', 1e-4, 'an orientation closer than this to the current one '
-          'does not rebuild the model (rad)', 0.0, 3.2),
-    Param('node.quaternion_tolerance', 1e-3, 'largest | |q| - 1 | accepted in a pose (then '
-          'normalised)', 0.0, 0.5),
-    Param('node.diagnostics_period_s', 1.0, 'period of /diagnostics when nothing changes (s); '
-          'changes are published within 0.1 s', 0.1, 60.0),
-    Param('node.wrench_queue_depth', 50, 'depth of the best-effort wrench subscription: how '
-          'many wrenches wait while the node is busy before the oldest are dropped', 1, 10000),
-    Param('node.frf_max_points', 20000, 'largest n_points a frequency_response call may ask '
-          'for (one call blocks the node for its duration)', 1, 1000000),
-    Param('node.frf_cache_size', 8, 'frequency responses kept per state (0: no cache)',
-          0, 1000),
-    Param('node.service_introspection', 'contents', 'service events on '
-          'frequency_response/_service_event: off, metadata or contents',
-          choices=('off', 'metadata', 'contents')),
-)
 #: Fixed for the life of the node: the robot itself and what is set up once.
 READ_ONLY = {'robot.frame_id', 'robot.anchors', 'robot.attachments', 'robot.initial_position',
              'robot.initial_orientation', 'node.diagnostics_period_s',
@@ -80,7 +59,6 @@ OVERRIDE_PARAMETER = {'method': 'model.method', 'elements_per_cable': 'model.ele
 LOG_PERIOD_S = 1.0
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
-NUMERIC_ERRORS = (AnalysisError, ConfigError, DynamicsError, ValueError, np.linalg.LinAlgError)
 
 
 def _descriptor(param: Param) -> ParameterDescriptor:
@@ -185,8 +163,8 @@ class DynamicsNode(Node):
                                        self._flat['node.angle_tolerance_rad'])
         self.revision = 0                      # bumps whenever the model state changes
         self._rebuilds = 0
-        self._last_pose_ns = None
-        self._last_wrench_ns = None
+        self.inputs = InputHandler(self.predictor, self.frame_id,
+                                   self._flat['node.quaternion_tolerance'])
         self._pose_stamp = None
         self._rebuild_s = collections.deque(maxlen=512)
         self._compute_s = collections.deque(maxlen=4096)   # check + integrate + message
@@ -245,7 +223,7 @@ class DynamicsNode(Node):
             except InvalidParameterTypeException as exc:
                 value = self._declare_widened(param, descriptor, exc)
             except InvalidParameterValueException as exc:
-                raise ConfigError(f'parameter {param.name}: {_first_line(exc)}') from None
+                raise ConfigError(f'parameter {param.name}: {first_line(exc)}') from None
             flat[param.name] = param.default if value is None else _plain(value)
         return flat
 
@@ -258,12 +236,12 @@ class DynamicsNode(Node):
                  lambda v: [float(x) for x in v]}
         convert = override is not None and widen.get((descriptor.type, override.type_))
         if not convert:
-            raise ConfigError(f'parameter {param.name}: {_first_line(exc)}') from None
+            raise ConfigError(f'parameter {param.name}: {first_line(exc)}') from None
         try:
             return self.declare_parameter(param.name, convert(override.value), descriptor,
                                           ignore_override=True).value
         except InvalidParameterValueException as err:
-            raise ConfigError(f'parameter {param.name}: {_first_line(err)}') from None
+            raise ConfigError(f'parameter {param.name}: {first_line(err)}') from None
 
     def on_set_parameters(self, params) -> SetParametersResult:
         """Validate a runtime change as a whole, apply it, or reject it with the reason.
@@ -281,17 +259,18 @@ class DynamicsNode(Node):
             if analysis_changed:
                 update = self.predictor.set_settings(settings)
         except NUMERIC_ERRORS as exc:
-            reason = _first_line(exc)
+            reason = first_line(exc)
             self.get_logger().warning(f'parameter change rejected: {reason}')
             return SetParametersResult(successful=False, reason=reason)
         except Exception as exc:  # never let a parameter change take the node down
-            reason = f'{type(exc).__name__}: {_first_line(exc)}'
+            reason = f'{type(exc).__name__}: {first_line(exc)}'
             self.get_logger().error(f'parameter change rejected: {reason}')
             return SetParametersResult(successful=False, reason=reason)
         self._flat, self.settings = flat, settings
         self._frf_cache.clear()
         self.predictor.pose_tolerance_m = flat['node.pose_tolerance_m']
         self.predictor.angle_tolerance_rad = flat['node.angle_tolerance_rad']
+        self.inputs.quaternion_tolerance = flat['node.quaternion_tolerance']
         if analysis_changed:
             self._rebuilt(update)
             self._update_modal()
@@ -318,19 +297,10 @@ class DynamicsNode(Node):
     def on_pose(self, msg: PoseStamped) -> None:
         """Move the model to the pose; rebuild only when it moved more than the tolerance."""
         try:
-            pose = read_pose(msg, self.frame_id, self._flat['node.quaternion_tolerance'],
-                             self._last_pose_ns)
-            update = self.predictor.update_pose(pose.position_m, quaternion=pose.quaternion)
+            update = self.inputs.pose(msg)
         except InvalidMessage as exc:
             self._reject(self.pose_health, exc.kind, str(exc))
             return
-        except NUMERIC_ERRORS as exc:
-            self._reject(self.pose_health, 'state', f'pose rejected: {_first_line(exc)}')
-            return
-        except Exception as exc:  # a bug must not stop the node: report it and carry on
-            self._reject(self.pose_health, 'internal', f'{type(exc).__name__}: {exc}')
-            return
-        self._last_pose_ns = pose.stamp_ns
         self._pose_stamp = msg.header.stamp
         if self.pose_health.accept():
             self._diag_dirty = True
@@ -352,21 +322,10 @@ class DynamicsNode(Node):
         """Advance the integrator to the wrench's stamp and publish the prediction."""
         start = time.perf_counter()
         try:
-            wrench = read_wrench(msg, self.frame_id, self._last_wrench_ns)
-            reason = self.predictor.wrench_reason(wrench.force_n, wrench.moment_nm)
-            if reason:
-                raise InvalidMessage(reason, 'infeasible')
-            u = self.predictor.advance(wrench.stamp_ns, wrench.force_n, wrench.moment_nm)
+            u = self.inputs.wrench(msg)
         except InvalidMessage as exc:
             self._reject(self.wrench_health, exc.kind, str(exc))
             return
-        except NUMERIC_ERRORS as exc:
-            self._reject(self.wrench_health, 'state', f'wrench rejected: {_first_line(exc)}')
-            return
-        except Exception as exc:
-            self._reject(self.wrench_health, 'internal', f'{type(exc).__name__}: {exc}')
-            return
-        self._last_wrench_ns = wrench.stamp_ns
         prediction = displacement_message(u, self.frame_id, msg.header.stamp)
         computed = time.perf_counter()
         self.displacement_pub.publish(prediction)
@@ -407,7 +366,7 @@ class DynamicsNode(Node):
             freqs = safe(natural_frequencies, self.predictor.system, 12)
             self._set_modal(freqs)
         except NUMERIC_ERRORS as exc:
-            self._modal_warnings = [f'natural frequencies failed: {_first_line(exc)}']
+            self._modal_warnings = [f'natural frequencies failed: {first_line(exc)}']
 
     def _set_modal(self, freqs) -> None:
         freqs = np.asarray(freqs)
@@ -433,7 +392,7 @@ class DynamicsNode(Node):
                 try:
                     arrays = self._compute_frf(parsed.overrides)
                 except NUMERIC_ERRORS as exc:
-                    error = f'frequency response failed: {_first_line(exc)}'
+                    error = f'frequency response failed: {first_line(exc)}'
                 except Exception as exc:
                     error = f'frequency response failed: {type(exc).__name__}: {exc}'
                 if self._flat['node.frf_cache_size'] > 0:
@@ -556,17 +515,12 @@ def _plain(value):
     return list(value) if isinstance(value, (list, tuple)) else value
 
 
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
-
-
 def main(args=None):
     """Run the node until Ctrl-C or SIGTERM; a bad configuration exits 1 with one line."""
     try:
         rclpy.init(args=args)
     except Exception as exc:  # e.g. a parameter file rcl cannot parse
-        print(f'dynamics_node: error: {_first_line(exc)}', file=sys.stderr)
+        print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
         return 1
     node = None
     status = 0
@@ -576,7 +530,7 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ConfigError, AnalysisError, DynamicsError) as exc:
-        print(f'dynamics_node: error: {_first_line(exc)}', file=sys.stderr)
+        print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
         status = 1
     finally:
         if node is not None:

@@ -35,24 +35,22 @@ import math
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 
-from cdpr_dynamics.analysis import AnalysisError
-from cdpr_dynamics.config import ConfigError, Settings, read_params_file, settings_from_params
-from cdpr_dynamics.dynamics import DynamicsError
-from cdpr_dynamics.live import LivePredictor, PoseUpdate
+from cdpr_dynamics.config import (NODE_PARAMETER_BY_NAME, Settings, node_options,
+                                  read_params_file, settings_from_params)
+from cdpr_dynamics.live import LivePredictor
 from cdpr_dynamics.recording import (RecordingError, RecordingWriter, read_messages,
                                      recording_info)
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import displacement_message, read_displacement
 from msg_adapters.joint_state import read_tensions, tensions_message
-from msg_adapters.pose import read_pose
+from msg_adapters.inputs import InputHandler
 from msg_adapters.validation import InvalidMessage, stamp_to_ns
-from msg_adapters.wrench import read_wrench
 
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
 WRENCH_TYPE = 'geometry_msgs/msg/WrenchStamped'
@@ -63,11 +61,6 @@ DIAGNOSTICS_TOPIC = '/diagnostics'
 NODE_NAME = 'cdpr_dynamics'
 HARDWARE_ID = 'cdpr_replay'
 ORDERS = ('log', 'stamp')
-#: the node's rejections of numerical failures (cdpr_dynamics.node.NUMERIC_ERRORS)
-NUMERIC_ERRORS = (AnalysisError, ConfigError, DynamicsError, ValueError, np.linalg.LinAlgError)
-#: node.* parameters the input handling depends on, with the node's defaults
-NODE_DEFAULTS = {'node.pose_tolerance_m': 1e-4, 'node.angle_tolerance_rad': 1e-4,
-                 'node.quaternion_tolerance': 1e-3}
 
 
 class ReplayError(RuntimeError):
@@ -81,24 +74,15 @@ class ReplayError(RuntimeError):
 class NodeOptions:
     """The node-only parameters that shape how inputs are accepted (``node.*``)."""
 
-    pose_tolerance_m: float = NODE_DEFAULTS['node.pose_tolerance_m']
-    angle_tolerance_rad: float = NODE_DEFAULTS['node.angle_tolerance_rad']
-    quaternion_tolerance: float = NODE_DEFAULTS['node.quaternion_tolerance']
+    pose_tolerance_m: float = NODE_PARAMETER_BY_NAME['node.pose_tolerance_m'].default
+    angle_tolerance_rad: float = NODE_PARAMETER_BY_NAME['node.angle_tolerance_rad'].default
+    quaternion_tolerance: float = NODE_PARAMETER_BY_NAME['node.quaternion_tolerance'].default
 
     @classmethod
     def from_params(cls, flat: dict) -> 'NodeOptions':
-        """From flat parameters (a params file): the node's defaults where they are absent."""
-        values = {}
-        for name, default in NODE_DEFAULTS.items():
-            value = flat.get(name, default)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ConfigError(f'{name} must be a number, got {value!r}') from None
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ConfigError(f'{name} must be finite and >= 0, got {value!r}')
-            values[name.split('.', 1)[1]] = value
-        return cls(**values)
+        """From flat parameters (a params file), validated as the node validates them."""
+        options = node_options(flat)
+        return cls(**{f.name: options[f'node.{f.name}'] for f in fields(cls)})
 
 
 def load_replay_config(path=None) -> tuple[Settings, NodeOptions, dict]:
@@ -108,62 +92,6 @@ def load_replay_config(path=None) -> tuple[Settings, NodeOptions, dict]:
 
     flat = read_params_file(path or default_config_path())
     return settings_from_params(flat), NodeOptions.from_params(flat), flat
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
-
-
-class InputHandler:
-    """``dynamics_node``'s pose and wrench callbacks without ROS: same checks, same calls.
-
-    :meth:`pose` and :meth:`wrench` return what the node publishes, or raise
-    :class:`~msg_adapters.validation.InvalidMessage` (``kind`` and one-line reason) where the
-    node rejects the input and keeps its last good state: the adapters' checks (not finite,
-    not a unit quaternion, another frame, out of order), a pose the model cannot use
-    (``state``: outside the workspace, infeasible tensions, crossing cables), a wrench the
-    cables cannot hold (``infeasible``), and (``internal``) anything unexpected.
-    """
-
-    def __init__(self, predictor: LivePredictor, frame_id: str,
-                 quaternion_tolerance: float = NODE_DEFAULTS['node.quaternion_tolerance']):
-        self.predictor = predictor
-        self.frame_id = frame_id
-        self.quaternion_tolerance = quaternion_tolerance
-        self.last_pose_ns: int | None = None
-        self.last_wrench_ns: int | None = None
-
-    def pose(self, msg) -> PoseUpdate:
-        """Move the model to the pose (``dynamics_node.on_pose``); the update done."""
-        try:
-            pose = read_pose(msg, self.frame_id, self.quaternion_tolerance, self.last_pose_ns)
-            update = self.predictor.update_pose(pose.position_m, quaternion=pose.quaternion)
-        except InvalidMessage:
-            raise
-        except NUMERIC_ERRORS as exc:
-            raise InvalidMessage(f'pose rejected: {_first_line(exc)}', 'state') from None
-        except Exception as exc:  # noqa: BLE001 - as the node: report and carry on
-            raise InvalidMessage(f'{type(exc).__name__}: {exc}', 'internal') from None
-        self.last_pose_ns = pose.stamp_ns
-        return update
-
-    def wrench(self, msg) -> np.ndarray:
-        """Advance to the wrench's stamp (``dynamics_node.on_wrench``); displacement (3,) m."""
-        try:
-            wrench = read_wrench(msg, self.frame_id, self.last_wrench_ns)
-            reason = self.predictor.wrench_reason(wrench.force_n, wrench.moment_nm)
-            if reason:
-                raise InvalidMessage(reason, 'infeasible')
-            u = self.predictor.advance(wrench.stamp_ns, wrench.force_n, wrench.moment_nm)
-        except InvalidMessage:
-            raise
-        except NUMERIC_ERRORS as exc:
-            raise InvalidMessage(f'wrench rejected: {_first_line(exc)}', 'state') from None
-        except Exception as exc:  # noqa: BLE001
-            raise InvalidMessage(f'{type(exc).__name__}: {exc}', 'internal') from None
-        self.last_wrench_ns = wrench.stamp_ns
-        return u
 
 
 def rejection_message(what: str, exc: InvalidMessage, topic: str, stamp):

@@ -43,7 +43,8 @@ from cdpr_dynamics import scenarios
 from cdpr_dynamics.config import read_params_file
 from cdpr_dynamics.recording import (RecordingError, RecordingWriter, message_class,
                                      read_messages, recording_info, serialize)
-from cdpr_dynamics.replay import (NODE_DEFAULTS, NodeOptions, ReplayError, compare_outputs,
+from cdpr_dynamics.config import ConfigError
+from cdpr_dynamics.replay import (NodeOptions, ReplayError, compare_outputs,
                                   load_replay_config, read_predictions, replay_offline)
 from msg_adapters import mcap_schema
 from msg_adapters.pose import pose_message
@@ -250,13 +251,12 @@ def test_each_bad_input_gets_its_diagnostic():
     assert len(pred.displacement) == 200 - 5 and len(pred.tension) == 20 - 4
 
 
-def test_node_option_defaults_are_the_nodes():
-    from cdpr_dynamics.node import NODE_PARAMETERS
-    defaults = {p.name: p.default for p in NODE_PARAMETERS}
-    for name, value in NODE_DEFAULTS.items():
-        assert defaults[name] == value, name
+def test_node_options_are_validated_like_the_nodes_parameters():
+    assert NodeOptions() == NodeOptions.from_params({})
     assert NodeOptions.from_params({'node.quaternion_tolerance': 0.01}).quaternion_tolerance \
         == 0.01
+    with pytest.raises(ConfigError, match='node.quaternion_tolerance = 2.0 is outside'):
+        NodeOptions.from_params({'node.quaternion_tolerance': 2.0})
 
 
 # ----------------------------------------------------------------------------- the output file
