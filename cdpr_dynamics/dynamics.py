@@ -97,19 +97,22 @@ class PlatformSystem:
         """(ndof, ndof) static stiffness of the platform, all cable DOFs condensed (N/m, ...)."""
         return self.dynamic_stiffness(np.zeros(1))[0].real
 
-    def matrices(self) -> tuple[sp.csc_matrix, sp.csc_matrix]:
-        """Global sparse stiffness and mass (platform DOFs first, then cable interior nodes)."""
+    def matrices(self, dense: bool = False):
+        """Global stiffness and mass (platform DOFs first, then cable interior nodes): sparse
+        (csc), or dense arrays (cheaper to build for small models)."""
         blocks = self.assembly.blocks
         if blocks is None:
             raise DynamicsError(f'method {self.assembly.method} has no finite matrices; '
                                 'use fem or fem_sag for modes and time histories')
         g = self.geometry.attachment_map()
-        return (_assemble(self.platform_stiffness, blocks.k_diag, blocks.k_off, g),
-                _assemble(self.platform_mass, blocks.m_diag, blocks.m_off, g))
+        return (_assemble(self.platform_stiffness, blocks.k_diag, blocks.k_off, g, dense),
+                _assemble(self.platform_mass, blocks.m_diag, blocks.m_off, g, dense))
 
 
-def _assemble(platform: np.ndarray, diag: np.ndarray, off: np.ndarray, g: np.ndarray):
-    """Sparse global matrix from block-tridiagonal cable chains and the platform block."""
+def _assemble(platform: np.ndarray, diag: np.ndarray, off: np.ndarray, g: np.ndarray,
+              as_dense: bool = False):
+    """Global matrix (sparse, or a dense array) from block-tridiagonal cable chains and the
+    platform block."""
     nd = platform.shape[0]
     ncab, nodes = diag.shape[:2]
     interior = nodes - 1
@@ -143,8 +146,12 @@ def _assemble(platform: np.ndarray, diag: np.ndarray, off: np.ndarray, g: np.nda
         cols += [np.broadcast_to(c, shape).ravel(), np.broadcast_to(r, shape).ravel()]
         vals += [coupling.ravel(), coupling.ravel()]
     size = nd + 3 * interior * ncab
-    return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                         shape=(size, size))
+    rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    if as_dense:
+        out = np.zeros((size, size))
+        np.add.at(out, (rows, cols), vals)
+        return out
+    return sp.csc_matrix((vals, (rows, cols)), shape=(size, size))
 
 
 def platform_system(robot: Robot, geometry: Geometry, assembly: CableAssembly) -> PlatformSystem:
@@ -235,6 +242,9 @@ def natural_frequencies(system: PlatformSystem, count: int = 12) -> np.ndarray:
 class Newmark:
     """Newmark's method (Eqs. 42-50) for M u'' + C u' + K u = F(t), factorised once.
 
+    Sparse K, M use a sparse LU of the effective stiffness; dense arrays (small models) a dense
+    LU.
+
     ``alpha`` is the velocity weight (often called gamma) and ``beta`` the displacement weight.
     Unconditionally stable for alpha >= 1/2 and beta >= alpha/2; otherwise stable only for
     w_max dt <= 1 / sqrt(alpha/2 - beta), which :meth:`__init__` checks (undamped bound) and
@@ -246,8 +256,9 @@ class Newmark:
         if not (dt_s > 0 and alpha >= 0.5 and beta > 0):
             raise DynamicsError(f'Newmark needs dt > 0, alpha >= 0.5 and beta > 0 (got dt = '
                                 f'{dt_s}, alpha = {alpha}, beta = {beta})')
-        self.k = sp.csc_matrix(stiffness)
-        self.m = sp.csc_matrix(mass)
+        dense = not sp.issparse(stiffness)
+        self.k = np.asarray(stiffness, dtype=float) if dense else sp.csc_matrix(stiffness)
+        self.m = np.asarray(mass, dtype=float) if dense else sp.csc_matrix(mass)
         self.c = damping.mass_factor * self.m + damping.stiffness_factor * self.k
         if beta < alpha / 2.0:
             w_max = math.sqrt(max(_largest_eigenvalue(self.k, self.m), 0.0))
@@ -261,8 +272,12 @@ class Newmark:
         self.a = (1 / (beta * dt * dt), alpha / (beta * dt), 1 / (beta * dt), 1 / (2 * beta) - 1,
                   alpha / beta - 1, dt / 2 * (alpha / beta - 2), dt * (1 - alpha), alpha * dt)
         self.dt_s = dt
-        self._solve = spla.splu(sp.csc_matrix(self.k + self.a[0] * self.m + self.a[1] * self.c),
-                                permc_spec='NATURAL').solve
+        effective = self.k + self.a[0] * self.m + self.a[1] * self.c         # Eq. 46
+        if dense:   # small models: a dense LU beats a sparse one's call overhead
+            factor = scipy.linalg.lu_factor(effective)
+            self._solve = lambda rhs: scipy.linalg.lu_solve(factor, rhs, check_finite=False)
+        else:
+            self._solve = spla.splu(sp.csc_matrix(effective), permc_spec='NATURAL').solve
         n = self.k.shape[0]
         self.u, self.v, self.acc = np.zeros(n), np.zeros(n), np.zeros(n)
 
@@ -271,7 +286,7 @@ class Newmark:
         n = self.k.shape[0]
         self.u, self.v, self.acc = np.zeros(n), np.zeros(n), np.zeros(n)
         if force is not None and np.any(force):
-            self.acc = spla.lsqr(self.m, force, atol=1e-14, btol=1e-14)[0]
+            self.acc = spla.lsqr(sp.csr_matrix(self.m), force, atol=1e-14, btol=1e-14)[0]
 
     def step(self, force: np.ndarray) -> np.ndarray:
         """Advance one step to the load ``force`` at t + dt (Eqs. 47-50); return u."""
@@ -287,8 +302,9 @@ class Newmark:
 
 def _largest_eigenvalue(k, m) -> float:
     """Largest w^2 of K phi = w^2 M phi (M positive definite on the DOFs that carry stiffness)."""
-    if k.shape[0] <= DENSE_EIGEN_DOFS:
-        return float(scipy.linalg.eigh(k.toarray(), m.toarray(), eigvals_only=True)[-1])
+    if not sp.issparse(k) or k.shape[0] <= DENSE_EIGEN_DOFS:
+        dense = [a.toarray() if sp.issparse(a) else a for a in (k, m)]
+        return float(scipy.linalg.eigh(*dense, eigvals_only=True)[-1])
     return float(spla.eigsh(k, k=1, M=m, which='LA', return_eigenvectors=False)[0])
 
 

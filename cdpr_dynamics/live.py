@@ -28,6 +28,7 @@ from cdpr_dynamics.robot import GeometryError, geometry, quaternion_to_matrix, r
 FALLBACK_METHOD = 'spring'
 MAX_GAP_S = 1.0
 AUTO_RECHOOSE_M = 0.05
+DENSE_NEWMARK_DOFS = 100    # up to this size dense matrices are cheaper to build and solve
 
 
 @dataclass(frozen=True)
@@ -163,7 +164,7 @@ class LivePredictor:
 
     def _integrator(self, system: PlatformSystem) -> Newmark:
         s = self.settings
-        k, m = system.matrices()
+        k, m = system.matrices(dense=system.dofs <= DENSE_NEWMARK_DOFS)
         integrator = Newmark(k, m, damping_for(s, system), s.dt_s, s.newmark_alpha,
                              s.newmark_beta)
         old = self.integrator
