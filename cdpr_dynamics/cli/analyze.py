@@ -146,22 +146,29 @@ def _plot(documents: list[dict], plot_dir: Path) -> list[Path]:
     paths.append(plot_dir / 'frf.png')
     fig.savefig(paths[-1], dpi=120)
     plt.close(fig)
-    histories = [(doc['method'], h) for doc in documents for h in doc['time_history']]
-    if histories:
-        fig, ax = plt.subplots(figsize=(7, 4))
-        for method, h in histories:
-            ax.plot(h['t_s'], 1e3 * np.asarray(h['u_m'])[:, 2],
-                    label=f"{method}, {h['excitation_hz']:g} Hz"
-                    + (' (a cable goes slack)' if h['slack'] else ''))
-            if 'slack_aware' in h:
-                ax.plot(h['t_s'], 1e3 * np.asarray(h['slack_aware']['u_m'])[:, 2], ls='--',
-                        label=f"slack-aware {h['slack_aware']['method']}, "
-                        f"{h['excitation_hz']:g} Hz")
-        ax.set_xlabel('time (s)')
-        ax.set_ylabel('u_z (mm)')
-        ax.set_title('Time history of the end-effector (Newmark)')
-        ax.grid(True, alpha=0.3)
-        ax.legend()
+    excitations = sorted({h['excitation_hz'] for doc in documents for h in doc['time_history']})
+    if excitations:     # one panel per excitation frequency, one line per method
+        fig, axes = plt.subplots(len(excitations), 1, figsize=(7, 1.2 + 2.4 * len(excitations)),
+                                 sharex=True, squeeze=False)
+        for ax, f_exc in zip(axes[:, 0], excitations):
+            for i, doc in enumerate(documents):
+                for h in doc['time_history']:
+                    if h['excitation_hz'] != f_exc:
+                        continue
+                    colour = f'C{i}'
+                    ax.plot(h['t_s'], 1e3 * np.asarray(h['u_m'])[:, 2], color=colour,
+                            label=doc['method'] + (' (a cable goes slack)' if h['slack']
+                                                   else ''))
+                    if 'slack_aware' in h:
+                        ax.plot(h['t_s'], 1e3 * np.asarray(h['slack_aware']['u_m'])[:, 2],
+                                color=colour, ls='--',
+                                label=f"{h['slack_aware']['method']}, slack-aware")
+            ax.set_title(f'{f_exc:g} Hz harmonic load', fontsize='medium')
+            ax.set_ylabel('u_z (mm)')
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize='small', loc='upper right')
+        axes[-1, 0].set_xlabel('time (s)')
+        fig.suptitle('Time history of the end-effector (Newmark)')
         fig.tight_layout()
         paths.append(plot_dir / 'time_history.png')
         fig.savefig(paths[-1], dpi=120)
