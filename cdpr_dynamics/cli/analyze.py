@@ -21,7 +21,7 @@ from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, Stopwatch, build
                                     damping_for, damping_warnings, equilibrium, frf_arrays, safe,
                                     sag_warnings)
 from cdpr_dynamics.config import METHODS, ConfigError, Settings, load_settings
-from cdpr_dynamics.dynamics import natural_frequencies, tension_change, time_history
+from cdpr_dynamics.dynamics import tension_change, time_history
 from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.selection import accuracy_warnings, choose_model
 from cdpr_dynamics.slack import peak_displacement, platform_only_method, slack_time_history

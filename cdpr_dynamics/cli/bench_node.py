@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.config import default_config_path, load_settings
+from cdpr_dynamics.config import load_settings
 
 
 def _percentiles(seconds) -> dict:
