@@ -19,10 +19,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, build_system, damping_for,
-                                    equilibrium, new_tension_solver)
+                                    equilibrium, new_tension_solver, sag_warnings)
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.dynamics import DynamicsError, Newmark, PlatformSystem
 from cdpr_dynamics.feasibility import WrenchSet, cable_crossing
+from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.robot import GeometryError, geometry, quaternion_to_matrix, required_wrench
 
 FALLBACK_METHOD = 'spring'
@@ -40,6 +41,7 @@ class PoseUpdate:
     dofs: int = 0
     timings_s: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    sag_parameter: tuple[float, ...] = ()     # Irvine's lambda^2 per cable
 
 
 class LivePredictor:
@@ -82,7 +84,8 @@ class LivePredictor:
         if rotation is None:
             rotation = np.eye(3) if quaternion is None else quaternion_to_matrix(quaternion)
         if not force and not self._moved(position, rotation):
-            return PoseUpdate(False, self.last_update.method, self.last_update.dofs)
+            return PoseUpdate(False, self.last_update.method, self.last_update.dofs,
+                              sag_parameter=self.last_update.sag_parameter)
         timings = {}
         start = time.perf_counter()
         self._check_cables(position, rotation)
@@ -97,8 +100,10 @@ class LivePredictor:
         self.eq, self.system, self.position_m, self.rotation = eq, system, position, rotation
         self.integrator = integrator
         self.wrench_set = None   # built on the first wrench at this state
+        sag = sag_parameter(eq.cables)
+        warnings += sag_warnings(self.settings, system.assembly.method, sag)
         self.last_update = PoseUpdate(True, system.assembly.method, system.dofs, timings,
-                                      tuple(warnings))
+                                      tuple(warnings), tuple(sag.tolist()))
         return self.last_update
 
     def _check_cables(self, position, rotation) -> None:

@@ -471,6 +471,7 @@ class DynamicsNode(Node):
             'tension_min_n': float(p.eq.tensions.tension_n.min()),
             'tension_max_n': float(p.eq.tensions.tension_n.max()),
             'lowest_natural_frequency_hz': self._lowest_hz,
+            'sag_parameter': np.round(update.sag_parameter, 4).tolist(),
             'rebuilds': self._rebuilds,
         }
         for stage, seconds in update.timings_s.items():
