@@ -119,9 +119,10 @@ def sag_warnings(settings: Settings, method: str, sag_parameter: np.ndarray) -> 
     worst = float(np.max(sag_parameter, initial=0.0))
     if method not in STRAIGHT_METHODS or not worst / 12.0 > settings.tolerance:
         return []
+    error = f'~{100 * worst / 12.0:.3g} %' if worst < 12.0 else 'more than 100 %'
     return [f'sag: lambda^2 up to {worst:.3g}; {method} ignores sag and overestimates the axial '
-            f'stiffness by ~{100 * min(worst / 12.0, 1e4):.3g} % (> model.tolerance '
-            f'{100 * settings.tolerance:g} %): use catenary_exact or fem_sag']
+            f'stiffness by {error} (> model.tolerance {100 * settings.tolerance:g} %): use '
+            'catenary_exact or fem_sag']
 
 
 FRF_ARRAYS = ('frequency_hz', 'amplitude_x_m', 'amplitude_y_m', 'amplitude_z_m', 'phase_x_rad',
