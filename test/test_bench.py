@@ -25,3 +25,5 @@ def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
     assert rows[('fem', 64)]['dofs'] == 1515
     assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'fem_sag'}
     assert result['node_compute_per_wrench']['p99_ms'] > 0
+    replay = {r['method']: r for r in result['replay']}
+    assert set(replay) == {'spring', 'fem'} and all(r['inputs'] > 0 for r in replay.values())

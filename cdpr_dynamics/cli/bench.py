@@ -5,9 +5,10 @@
 Stages: tension QP (cold, warm), model build per method and size, a 391-point FRF against a
 naive dense solve of (K + i w C - w^2 M) per frequency measured in the same run, a 1000-step
 Newmark time history, and the node's own work (pose update: tensions + model + factorisation;
-one wrench: message check, feasibility, Newmark step, prediction message) and, with
+one wrench: message check, feasibility, Newmark step, prediction message), cdpr_replay offline
+and, with
 ``--dds``, the live node as a child process (wrench -> prediction latency, its own compute,
-the sustained input rate). ``--quick`` runs every stage with few repetitions (CI runs it
+the sustained input rate, and ``cdpr_record`` beside it under a wrench flood). ``--quick`` runs every stage with few repetitions (CI runs it
 to prove the command works; its numbers are not meant to be read).
 """
 from __future__ import annotations
@@ -110,6 +111,34 @@ def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
     return rows
 
 
+def bench_replay(duration_s: float) -> list[dict]:
+    """``cdpr_replay`` offline on the ``trajectory_harmonic`` scenario stretched to
+    ``duration_s`` (20 Hz poses, each a rebuild; 200 Hz wrenches): input messages per second,
+    reading, checks, models and writing the output file included."""
+    import tempfile
+
+    from cdpr_dynamics import scenarios
+    from cdpr_dynamics.replay import load_replay_config, replay_offline
+
+    settings, options, _ = load_replay_config()
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        source = Path(folder) / 'input.mcap'
+        scenarios.write_scenario('trajectory_harmonic', source, duration_s=duration_s)
+        for method, elements in (('spring', 1), ('fem', 16)):
+            output = Path(folder) / f'{method}.mcap'
+            start = time.perf_counter()
+            summary = replay_offline(source, output, settings, method,
+                                     elements_per_cable=elements, options=options)
+            elapsed = time.perf_counter() - start
+            rows.append({'method': method, 'elements_per_cable': elements,
+                         'inputs': summary.inputs, 'seconds': elapsed,
+                         'messages_per_s': summary.inputs / elapsed,
+                         'times_real_time': duration_s / elapsed})
+            output.unlink()
+    return rows
+
+
 def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
     """Every stage; with ``dds_config`` also the live node over DDS (a child process)."""
     repeat = 3 if quick else 30
@@ -118,10 +147,13 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
               'node_compute_per_wrench': bench_node.compute_per_wrench(
                   settings, 2000 if quick else 20000),
               'node_pose_update': bench_node.pose_updates(
-                  settings, NODE_METHODS, n=30 if quick else 300)}
+                  settings, NODE_METHODS, n=30 if quick else 300),
+              'replay': bench_replay(2.0 if quick else 20.0)}
     if dds_config:
         result['dds'] = bench_node.dds(dds_config, rates=(1000, 5000) if quick else
                                        (1000, 2000, 3000, 5000, 8000))
+        result['recording'] = bench_node.recording_throughput(dds_config,
+                                                              duration_s=1.0 if quick else 3.0)
     return result
 
 
@@ -148,6 +180,10 @@ def summary(result: dict) -> str:
     for method, row in result['node_pose_update'].items():
         lines.append(f"node pose update {method}: " + (row['error'] if 'error' in row else
                      f"p50/p99 {row['p50_ms']:.3f}/{row['p99_ms']:.3f} ms"))
+    for row in result['replay']:
+        lines.append(f"cdpr_replay offline {row['method']} n={row['elements_per_cable']}: "
+                     f"{row['messages_per_s']:.0f} messages/s ({row['times_real_time']:.0f}x "
+                     "real time)")
     if 'dds' in result:
         dds = result['dds']
         lines.append(f"DDS wrench -> prediction latency p50/p99 {dds['latency']['p50_ms']:.2f}/"
@@ -155,6 +191,10 @@ def summary(result: dict) -> str:
                      f"{dds['node_compute']['p50_ms']:.3f}/{dds['node_compute']['p99_ms']:.3f} "
                      f"ms; sustained {dds['sustained_rate_hz']} Hz (max processed "
                      f"{dds['max_processed_hz']:.0f}/s)")
+        rec = result['recording']
+        lines.append(f"cdpr_record beside the node under a 5 kHz wrench flood: "
+                     f"{rec['messages_per_s']:.0f} messages/s recorded, "
+                     f"{rec['bytes_per_message']:.0f} bytes/message (file)")
     return '\n'.join(lines)
 
 

@@ -229,6 +229,40 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
     return result
 
 
+def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.0) -> dict:
+    """``cdpr_record`` beside a running node while wrenches flood in at ``rate_hz``: messages
+    recorded per second and bytes per message (all child processes, one ROS domain)."""
+    from cdpr_dynamics.node_process import start_node, stop_process
+    from cdpr_dynamics.recording import recording_info
+
+    reservation, env = _ros_session('record')
+    folder = Path(env['ROS_LOG_DIR'])
+    path = folder / 'bench.mcap'
+    node = start_node(config, env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    recorder = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.record', '--output',
+                                 str(path)], env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+    try:
+        out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node', 'flood',
+                              '--rate', str(rate_hz), '--duration', str(duration_s)], env=env,
+                             capture_output=True, text=True, timeout=duration_s + 60)
+        if out.returncode != 0:
+            raise RuntimeError(out.stderr.strip().splitlines()[-1])
+        sent = json.loads(out.stdout.strip().splitlines()[-1])
+        time.sleep(1.0)            # the node's last predictions reach the recorder
+    finally:
+        stop_process(recorder)
+        stop_process(node)
+        reservation.release()
+    info = recording_info(path)
+    counts = {name: t.message_count for name, t in info.topics.items()}
+    span_s = max((info.end_ns - info.start_ns) * 1e-9, 1e-9)
+    return {'wrenches_sent': sent['sent'], 'messages': info.message_count, 'topics': counts,
+            'messages_per_s': info.message_count / span_s,
+            'bytes_per_message': path.stat().st_size / max(info.message_count, 1),
+            'complete': info.complete}
+
+
 def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world') -> dict:
     """Publish wrenches at ``rate_hz`` for ``duration_s``; stamps start at ``start_s``."""
     import rclpy
