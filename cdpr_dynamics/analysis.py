@@ -13,7 +13,7 @@ import numpy as np
 from cdpr_dynamics import models
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.dynamics import (Damping, DynamicsError, PlatformSystem, frequency_response,
-                                    natural_frequencies, platform_system,
+                                    natural_frequencies, platform_frequencies, platform_system,
                                     rayleigh_from_modal_ratio)
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.robot import Geometry, GeometryError, geometry, required_wrench
@@ -80,17 +80,19 @@ def build_system(settings: Settings, eq: Equilibrium, method: str | None = None,
 def damping_for(settings: Settings, system: PlatformSystem | None = None) -> Damping:
     """Rayleigh damping of the settings, or fitted to ``damping.modal_ratio`` when it is > 0.
 
-    The fit puts the ratio at the lowest natural frequency and at the highest one below
-    ``frf.f_max_hz`` (the band of interest), so modes in between are damped a little less.
+    The fit puts the ratio at the lowest and at the highest platform mode below
+    ``frf.f_max_hz`` (modes in between are damped a little less): the modes of the platform
+    mass on the model's statically condensed cables, so every model of a scene gets the same
+    damping (to the ~1 % its static stiffness differs by) and no cable mode decides it.
     """
     if settings.damping_modal_ratio <= 0.0:
         return Damping(settings.damping_mass_factor, settings.damping_stiffness_factor)
     if system is None:
         raise AnalysisError('damping.modal_ratio needs the model to fit Rayleigh factors')
-    freqs = natural_frequencies(system, 12)
+    freqs = platform_frequencies(system)
     freqs = freqs[freqs > 0]
     if freqs.size == 0:
-        raise AnalysisError('no positive natural frequency to fit damping.modal_ratio to')
+        raise AnalysisError('no positive platform mode to fit damping.modal_ratio to')
     in_band = freqs[freqs <= settings.f_max_hz]
     high = in_band[-1] if in_band.size else freqs[0]
     return rayleigh_from_modal_ratio(settings.damping_modal_ratio, freqs[0], high)

@@ -260,7 +260,21 @@ def _value(flat: dict, name: str):
     return value
 
 
+#: Settings fields that are plain numbers -> the parameter whose range they obey.
+FIELD_PARAMETERS = {
+    'tension_min_n': 'tension.min_n', 'tension_max_n': 'tension.max_n',
+    'elements_per_cable': 'model.elements_per_cable', 'tolerance': 'model.tolerance',
+    'damping_mass_factor': 'damping.mass_factor',
+    'damping_stiffness_factor': 'damping.stiffness_factor',
+    'damping_modal_ratio': 'damping.modal_ratio', 'f_min_hz': 'frf.f_min_hz',
+    'f_max_hz': 'frf.f_max_hz', 'n_points': 'frf.n_points', 'newmark_alpha': 'newmark.alpha',
+    'newmark_beta': 'newmark.beta', 'dt_s': 'newmark.dt_s',
+}
+
+
 def _check_settings(s: Settings) -> None:
+    for field_name, name in FIELD_PARAMETERS.items():   # Settings.replace comes here too
+        _value({name: getattr(s, field_name)}, name)
     if s.tension_min_n > s.tension_max_n:
         raise ConfigError(f'tension.min_n = {s.tension_min_n} exceeds tension.max_n = '
                           f'{s.tension_max_n}')

@@ -41,7 +41,7 @@ class Damping:
     def ratios(self, frequency_hz) -> np.ndarray:
         """Modal damping ratios zeta = dM/(2w) + dK w/2 of modes at ``frequency_hz``."""
         w = 2.0 * np.pi * np.asarray(frequency_hz, dtype=float)
-        with np.errstate(divide='ignore'):
+        with np.errstate(divide='ignore', invalid='ignore'):
             return self.mass_factor / (2.0 * w) + self.stiffness_factor * w / 2.0
 
 
@@ -136,7 +136,7 @@ def _assemble(platform: np.ndarray, diag: np.ndarray, off: np.ndarray, g: np.nda
             shape = blk.shape
             rows += [np.broadcast_to(r, shape).ravel(), np.broadcast_to(c, shape).ravel()]
             cols += [np.broadcast_to(c, shape).ravel(), np.broadcast_to(r, shape).ravel()]
-            vals += [blk.ravel(), np.swapaxes(blk, -1, -2).ravel()]
+            vals += [blk.ravel(), blk.ravel()]      # (c, r) entries: the transpose
         # last interior node to the platform through the attachment map
         coupling = np.einsum('cij,cjb->cib', off[:, -1], g)       # (ncab, 3, nd)
         r = base[:, -1, None, None] + i3[:, None]                  # (ncab, 3, 1)
@@ -237,6 +237,14 @@ def natural_frequencies(system: PlatformSystem, count: int = 12) -> np.ndarray:
     return np.sqrt(np.clip(np.sort(values.real), 0.0, None)) / (2.0 * np.pi)
 
 
+def platform_frequencies(system: PlatformSystem) -> np.ndarray:
+    """Natural frequencies (Hz) of the platform mass on the statically condensed cables:
+    eig(K_static, M_platform), ascending; the cables' own inertia left out."""
+    values = scipy.linalg.eigh(system.static_stiffness(), system.platform_mass,
+                               eigvals_only=True)
+    return np.sqrt(np.clip(values, 0.0, None)) / (2.0 * np.pi)
+
+
 # --------------------------------------------------------------------------- Newmark
 
 class Newmark:
@@ -281,12 +289,10 @@ class Newmark:
         n = self.k.shape[0]
         self.u, self.v, self.acc = np.zeros(n), np.zeros(n), np.zeros(n)
 
-    def reset(self, force=None) -> None:
-        """Rest state; initial acceleration from M a0 = F0 (Eq. 43) when a force acts at t=0."""
+    def reset(self) -> None:
+        """Back to rest (u = v = a = 0: Eq. 43 with no load at t = 0)."""
         n = self.k.shape[0]
         self.u, self.v, self.acc = np.zeros(n), np.zeros(n), np.zeros(n)
-        if force is not None and np.any(force):
-            self.acc = spla.lsqr(sp.csr_matrix(self.m), force, atol=1e-14, btol=1e-14)[0]
 
     def step(self, force: np.ndarray) -> np.ndarray:
         """Advance one step to the load ``force`` at t + dt (Eqs. 47-50); return u."""
@@ -336,7 +342,6 @@ def time_history(system: PlatformSystem, force_n, excitation_hz: float, duration
     load[:3] = force_n
     nd = system.platform_dofs
     u = np.zeros((steps + 1, nd))
-    integrator.reset()
     w = 2.0 * np.pi * excitation_hz
     for i in (progress or iter)(range(1, steps + 1)):
         u[i] = integrator.step(load * math.sin(w * t[i]))[:nd]

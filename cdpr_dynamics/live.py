@@ -90,6 +90,9 @@ class LivePredictor:
         start = time.perf_counter()
         self._check_cables(position, rotation)
         eq = equilibrium(self.settings, position, rotation, self._solver)
+        s = self.settings        # the wrenches the cables can hold here (per state, not per wrench)
+        wrench_set = WrenchSet(eq.geometry.structure_matrix, s.tension_min_n, s.tension_max_n,
+                               required_wrench(s.robot, s.external_force_n, s.external_moment_nm))
         timings['tensions'] = time.perf_counter() - start
         start = time.perf_counter()
         system, warnings = self._build(eq)
@@ -99,7 +102,7 @@ class LivePredictor:
         timings['factorisation'] = time.perf_counter() - start
         self.eq, self.system, self.position_m, self.rotation = eq, system, position, rotation
         self.integrator = integrator
-        self.wrench_set = None   # built on the first wrench at this state
+        self.wrench_set = wrench_set
         sag = sag_parameter(eq.cables)
         warnings += sag_warnings(self.settings, system.assembly.method, sag)
         self.last_update = PoseUpdate(True, system.assembly.method, system.dofs, timings,
@@ -125,11 +128,6 @@ class LivePredictor:
 
     def wrench_reason(self, force_n, moment_nm=(0.0, 0.0, 0.0)) -> str:
         """Why the cables cannot hold this external wrench at the current pose, or ''."""
-        if self.wrench_set is None:
-            s = self.settings
-            self.wrench_set = WrenchSet(self.eq.geometry.structure_matrix, s.tension_min_n,
-                                        s.tension_max_n, required_wrench(
-                                            s.robot, s.external_force_n, s.external_moment_nm))
         return self.wrench_set.reason(force_n, moment_nm)
 
     def _resolved_settings(self, eq: Equilibrium) -> Settings:

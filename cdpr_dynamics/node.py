@@ -36,8 +36,8 @@ from sensor_msgs.msg import JointState
 from cdpr_dynamics.analysis import (AnalysisError, build_system, damping_for, damping_warnings,
                                     frf_arrays, safe)
 from cdpr_dynamics.config import (NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS, ConfigError,
-                                  Param, settings_from_params)
-from cdpr_dynamics.dynamics import DynamicsError, natural_frequencies
+                                  Param, node_options, settings_from_params)
+from cdpr_dynamics.dynamics import natural_frequencies
 from cdpr_dynamics.live import LivePredictor
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import displacement_message
@@ -52,10 +52,6 @@ NODE_NAME = 'cdpr_dynamics'
 READ_ONLY = {'robot.frame_id', 'robot.anchors', 'robot.attachments', 'robot.initial_position',
              'robot.initial_orientation', 'node.diagnostics_period_s',
              'node.wrench_queue_depth', 'node.service_introspection'}
-#: Overrides of the service -> the parameter whose range they obey.
-OVERRIDE_PARAMETER = {'method': 'model.method', 'elements_per_cable': 'model.elements_per_cable',
-                      'f_min_hz': 'frf.f_min_hz', 'f_max_hz': 'frf.f_max_hz',
-                      'n_points': 'frf.n_points'}
 LOG_PERIOD_S = 1.0
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
@@ -124,11 +120,14 @@ class InputHealth:
         if now - self._logged.get(kind, -np.inf) >= LOG_PERIOD_S:
             more = self._suppressed.pop(kind, 0)
             text = reason + (f' ({more} more since the last log)' if more else '')
-            logger = self._children.setdefault(kind, self.logger.get_child(kind))
+            if kind not in self._children:
+                self._children[kind] = self.logger.get_child(kind)
+            logger = self._children[kind]
+            # throttled above (once a second per kind, counting what was held back)
             if self.bad_level >= diag.ERROR:
-                logger.error(text, throttle_duration_sec=LOG_PERIOD_S)
+                logger.error(text)
             else:
-                logger.warning(text, throttle_duration_sec=LOG_PERIOD_S)
+                logger.warning(text)
             self._logged[kind] = now
         else:
             self._suppressed[kind] += 1
@@ -157,6 +156,7 @@ class DynamicsNode(Node):
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
         self._flat = self._declare_parameters()
+        node_options(self._flat)          # node.* values and choices, as the tools check them
         self.settings = settings_from_params(self._flat)
         self.frame_id = self.settings.robot.frame_id
         self.predictor = LivePredictor(self.settings, self._flat['node.pose_tolerance_m'],
@@ -256,6 +256,7 @@ class DynamicsNode(Node):
         analysis_changed = any(p.name in PARAMETER_BY_NAME for p in params)
         try:
             settings = settings_from_params(flat)
+            node_options(flat)
             if analysis_changed:
                 update = self.predictor.set_settings(settings)
         except NUMERIC_ERRORS as exc:
@@ -409,12 +410,6 @@ class DynamicsNode(Node):
 
     def _compute_frf(self, overrides: dict) -> dict:
         settings = self.predictor.settings
-        for key, value in overrides.items():
-            param = PARAMETER_BY_NAME.get(OVERRIDE_PARAMETER.get(key, ''))
-            if param is not None and param.low is not None and \
-                    not param.low <= value <= param.high:
-                raise ConfigError(f'override {key}={value} is outside [{param.low:g}, '
-                                  f'{param.high:g}]')
         changes = settings_changes(overrides, settings.frf_force_n)
         n_points = changes.get('n_points', settings.n_points)
         if n_points > self._flat['node.frf_max_points']:
@@ -422,7 +417,10 @@ class DynamicsNode(Node):
                               f'{self._flat["node.frf_max_points"]}')
         if changes:
             settings = settings.replace(**changes)
-        system = safe(build_system, settings, self.predictor.eq)
+        if 'method' in changes or 'elements_per_cable' in changes:
+            system = safe(build_system, settings, self.predictor.eq)
+        else:       # the model the node integrates (auto's choice, or the fallback)
+            system = self.predictor.system
         if not system.assembly.valid:
             raise AnalysisError(f'method {system.assembly.method} is not valid for this state: '
                                 + '; '.join(system.assembly.warnings))
@@ -530,7 +528,7 @@ def main(args=None):
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ConfigError, AnalysisError, DynamicsError) as exc:
+    except NUMERIC_ERRORS as exc:
         print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
         status = 1
     finally:

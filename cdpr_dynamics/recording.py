@@ -24,6 +24,7 @@ import importlib
 import io
 import os
 import struct
+import tempfile
 import threading
 import time
 import zlib
@@ -1034,37 +1035,61 @@ def read_messages(path, topics=None, *, allow_incomplete: bool = False, raw: boo
 def recover_recording(source, destination, *, force: bool = False) -> int:
     """Rewrite what survives of an incomplete recording as a complete, indexed file.
 
-    Returns the number of messages kept. The source is only read.
+    Returns the number of messages kept. The source is only read; the destination appears only
+    once complete (written under a temporary name in its folder, then renamed), is never the
+    source, and an existing one is kept unless ``force``.
     """
-    source, stream = _open(source)
     destination = Path(destination)
+    if destination.exists() and Path(source).exists() and destination.samefile(source):
+        raise RecordingError(f'{destination} is the recording to recover: give another name')
+    if destination.exists() and not force:
+        raise RecordingError(f'{destination} exists; not overwriting it')
+    source, stream = _open(source)
     try:
-        out = open(destination, 'wb' if force else 'xb')
-    except FileExistsError:
+        fd, temp = tempfile.mkstemp(prefix=f'.{destination.name}.partial-',
+                                    dir=destination.parent)
+    except OSError as exc:
         stream.close()
+        raise RecordingError(f'cannot write {destination}: {exc.strerror or exc}') from None
+    try:
+        with stream, os.fdopen(fd, 'wb') as out:
+            try:
+                header = SeekingReader(stream).get_header()
+            except (McapError, EndOfFile, ValueError) as exc:
+                raise RecordingError(f'{source}: no readable MCAP header ({exc})') from None
+            writer = Writer(out, chunk_size=DEFAULT_CHUNK_SIZE,
+                            compression=CompressionType.NONE)
+            writer.start(profile=header.profile, library=header.library)
+            schema_ids, channel_ids = {}, {}
+            kept = 0
+            stream.seek(0)
+            for record in _scan(source, stream):
+                if isinstance(record, Schema) and record.id not in schema_ids:
+                    schema_ids[record.id] = writer.register_schema(
+                        record.name, record.encoding, record.data)
+                elif isinstance(record, Channel) and record.id not in channel_ids:
+                    channel_ids[record.id] = writer.register_channel(
+                        record.topic, record.message_encoding,
+                        schema_ids.get(record.schema_id, 0), dict(record.metadata))
+                elif isinstance(record, Message) and record.channel_id in channel_ids:
+                    writer.add_message(channel_ids[record.channel_id], record.log_time,
+                                       record.data, record.publish_time, record.sequence)
+                    kept += 1
+                elif isinstance(record, Metadata):
+                    writer.add_metadata(record.name, dict(record.metadata))
+            writer.finish()
+        if force:
+            os.replace(temp, destination)
+        else:
+            os.link(temp, destination)      # fails if the name appeared meanwhile
+            os.unlink(temp)
+    except FileExistsError:
+        os.unlink(temp)
         raise RecordingError(f'{destination} exists; not overwriting it') from None
-    with stream, out:
-        header = SeekingReader(stream).get_header()
-        writer = Writer(out, chunk_size=DEFAULT_CHUNK_SIZE, compression=CompressionType.NONE)
-        writer.start(profile=header.profile, library=header.library)
-        schema_ids, channel_ids = {}, {}
-        kept = 0
-        stream.seek(0)
-        for record in _scan(source, stream):
-            if isinstance(record, Schema) and record.id not in schema_ids:
-                schema_ids[record.id] = writer.register_schema(
-                    record.name, record.encoding, record.data)
-            elif isinstance(record, Channel) and record.id not in channel_ids:
-                channel_ids[record.id] = writer.register_channel(
-                    record.topic, record.message_encoding,
-                    schema_ids.get(record.schema_id, 0), dict(record.metadata))
-            elif isinstance(record, Message) and record.channel_id in channel_ids:
-                writer.add_message(channel_ids[record.channel_id], record.log_time,
-                                   record.data, record.publish_time, record.sequence)
-                kept += 1
-            elif isinstance(record, Metadata):
-                writer.add_metadata(record.name, dict(record.metadata))
-        writer.finish()
+    except BaseException:
+        if os.path.exists(temp):
+            os.unlink(temp)
+        raise
     return kept
 
 

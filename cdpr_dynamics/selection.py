@@ -33,7 +33,8 @@ eigen-solution and no reference run; about 10-20 ms for a whole choice):
   has the chain's dispersion error sqrt(6(1 - cos t)/(2 + cos t))/t - 1, t = j pi/n, on the
   j-th mode (and misses modes j >= n); straight models add Irvine's shift of the first
   symmetric in-plane mode (100 % once lambda^2 >= 4 pi^2, where it crosses the antisymmetric
-  one) or half the tension variation gamma dz/(2 T) along the cable, whichever is larger.
+  one) or a quarter of the relative tension variation, gamma dz/(4 T), along the cable,
+  whichever is larger.
 
 Straight models (spring, fem, dsm) fail where lambda^2 is not small: their axial stiffness is
 off by ~lambda^2/12 statically and their symmetric in-plane cable modes by ~4 lambda^2/pi^4, so

@@ -133,3 +133,16 @@ def test_sag_parameter_reported_and_straight_models_warned_on_slack_ish_cables(t
     assert sag.shape == (8,) and sag.max() > 12 * 0.01
     assert any(w.startswith('sag: lambda^2') for w in docs['fem']['warnings'])
     assert not any(w.startswith('sag:') for w in docs['catenary_exact']['warnings'])
+
+
+@pytest.mark.parametrize('args,message', [
+    (['--n-points', '0'], 'frf.n_points = 0 is outside'),
+    (['--f-min', '-5'], 'frf.f_min_hz = -5.0 is outside'),
+    (['--elements', '5000'], 'model.elements_per_cable = 5000 is outside'),
+    (['--json', '/proc/forbidden/a.json'], 'cannot write'),
+])
+def test_analyze_checks_command_line_overrides_like_the_config(args, message):
+    out = analyze('--method', 'spring', '--duration', '0.01', *args)
+    assert out.returncode == 1 and 'Traceback' not in out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], out.stderr

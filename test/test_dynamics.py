@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from cdpr_dynamics import models
 from cdpr_dynamics.analysis import equilibrium
 from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import (DENSE_EIGEN_DOFS, Damping, DynamicsError, Newmark, frequency_response,
+from cdpr_dynamics.dynamics import (DENSE_EIGEN_DOFS, Damping, _assemble, DynamicsError, Newmark, frequency_response,
                                     natural_frequencies, platform_system,
                                     rayleigh_from_modal_ratio, tension_change, time_history)
 from cdpr_dynamics.models.base import CableSet
@@ -286,3 +286,17 @@ def test_newmark_dense_and_sparse_paths_agree(paper):
     # both solves carry round-off ~ cond(K_eff) eps ~ 1e-10 of the response (EA/T ~ 1e4)
     runs = np.array(runs)
     assert_allclose(runs[1], runs[0], rtol=0, atol=1e-9 * np.abs(runs[0]).max())
+
+
+def test_assembly_places_the_transpose_of_each_off_diagonal_block_below_it():
+    """K[c, r] = K[r, c] even for non-symmetric 3x3 off-diagonal blocks."""
+    rng = np.random.default_rng(3)
+    ncab, nodes = 2, 4
+    diag = rng.normal(size=(ncab, nodes, 3, 3))
+    diag = diag + np.swapaxes(diag, -1, -2)
+    off = rng.normal(size=(ncab, nodes - 1, 3, 3))
+    g = np.zeros((ncab, 3, 3))
+    g[:] = np.eye(3)
+    k = _assemble(np.eye(3), diag, off, g, as_dense=True)
+    assert_allclose(k, k.T, atol=1e-12)
+    assert_allclose(k[3:6, 6:9], off[0, 0]) and assert_allclose(k[6:9, 3:6], off[0, 0].T)

@@ -553,16 +553,20 @@ def test_rigid_platform_inputs(ros):
         assert rigid.close() == 0
 
 
-def test_bad_configuration_exits_with_one_line(ros, tmp_path):
+@pytest.mark.parametrize('method,parameters,words', [
+    ('bogus', None, ('model.method', 'bogus')),
+    ('fem', {'node.service_introspection': 'bogus'}, ('node.service_introspection', 'bogus')),
+])
+def test_bad_configuration_exits_with_one_line(ros, tmp_path, method, parameters, words):
     bad = tmp_path / 'bad.yaml'
-    bad.write_text(PAPER.read_text().replace('method: fem', 'method: bogus'))
+    bad.write_text(PAPER.read_text().replace('method: fem', f'method: {method}'))
     with reserve_domain_id(1, 140) as domain:
         env = isolated_env(domain.domain_id, tmp_path / 'log')
-        proc = start_node(bad, env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        proc = start_node(bad, env, parameters, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         _, err = proc.communicate(timeout=60)
     assert proc.returncode == 1
     lines = err.decode().strip().splitlines()
-    assert len(lines) == 1 and 'model.method' in lines[0] and 'bogus' in lines[0], lines
+    assert len(lines) == 1 and all(w in lines[0] for w in words), lines
 
 
 def test_flood_of_wrenches(ros):

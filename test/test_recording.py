@@ -489,7 +489,12 @@ def test_sigkill_loses_at_most_the_last_second(procs, output_dir):
     with pytest.raises(Exception):
         rosbags_read(path)
     fixed = output_dir / 'recovered.mcap'
+    with pytest.raises(RecordingError, match='is the recording to recover'):
+        recover_recording(path, path, force=True)     # would have emptied the recording
     assert recover_recording(path, fixed) == len(xs)
+    with pytest.raises(RecordingError, match='exists; not overwriting it'):
+        recover_recording(path, fixed)
+    assert not list(output_dir.glob('.*partial*'))
     by_topic, _ = rosbags_read(fixed)
     assert [int(m.pose.position.x) for _, m in by_topic['/pose']] == xs
     assert recording_info(fixed).complete

@@ -91,7 +91,7 @@ def test_cli_writes_csv_and_chart(tmp_path):
 @pytest.mark.parametrize('args, message', [
     (['--config', 'missing.yaml'], 'cannot read config'),
     (['--repeat', '0'], '--repeat must be at least 1'),
-    (['--f-max', '-3'], 'frf.f_min_hz'),
+    (['--f-max', '-3'], 'frf.f_max_hz = -3.0 is outside'),
 ])
 def test_errors_are_one_line_with_nonzero_status(tmp_path, args, message):
     out = run_cli(*args, '--csv', tmp_path / 't.csv', '--plot', tmp_path / 't.png')

@@ -101,7 +101,8 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
         'natural_frequencies_hz': freqs.tolist(),
         'damping': {'mass_factor': damping.mass_factor,
                     'stiffness_factor': damping.stiffness_factor,
-                    'modal_damping_ratios': damping.ratios(freqs).tolist()},
+                    'modal_damping_ratios': [r if np.isfinite(r) else None  # 0 Hz modes
+                                             for r in damping.ratios(freqs).tolist()]},
         'frf': {'frequency_hz': arrays['frequency_hz'].tolist(),
                 'amplitude_m': amplitude.tolist(), 'phase_rad': phase.tolist()},
         'time_history': histories,
@@ -227,13 +228,18 @@ def main(argv=None) -> int:
     except (ConfigError, AnalysisError) as exc:
         print(f'cdpr_analyze: error: {exc}', file=sys.stderr)
         return 1
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1))
-        print(f'wrote {args.json}')
-    if args.plot_dir:
-        for path in _plot(result.get('methods', [result]), args.plot_dir):
-            print(f'wrote {path}')
+    try:
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(result, indent=1))
+            print(f'wrote {args.json}')
+        if args.plot_dir:
+            for path in _plot(result.get('methods', [result]), args.plot_dir):
+                print(f'wrote {path}')
+    except OSError as exc:
+        print(f'cdpr_analyze: error: cannot write {exc.filename or ""}: {exc.strerror}',
+              file=sys.stderr)
+        return 1
     freqs = ', '.join(f'{f:.2f}' for f in result['natural_frequencies_hz'][:6])
     print(f"{result['method']}: {result['dofs']} DOFs; tensions "
           f"{np.round(result['tensions_n'], 1).tolist()} N; lowest modes {freqs} Hz")

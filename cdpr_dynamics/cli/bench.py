@@ -86,7 +86,11 @@ def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
         except (AnalysisError, DynamicsError, ValueError) as exc:
             rows.append({'method': method, 'elements_per_cable': n, 'error': str(exc)})
             continue
-        damping = damping_for(settings, system)
+        try:
+            damping = damping_for(settings, system)
+        except (AnalysisError, DynamicsError) as exc:
+            rows.append({'method': method, 'elements_per_cable': n, 'error': str(exc)})
+            continue
         row = {'method': method, 'elements_per_cable': n, 'dofs': system.dofs,
                'build': timed(lambda: build_system(settings, eq, method, n), repeat),
                'frf_391': timed(lambda: frequency_response(system, freqs, settings.frf_force_n,
@@ -215,8 +219,13 @@ def main(argv=None) -> int:
         print(f'cdpr_bench: error: {exc}', file=sys.stderr)
         return 1
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1))
+        try:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(result, indent=1))
+        except OSError as exc:
+            print(f'cdpr_bench: error: cannot write {args.json}: {exc.strerror}',
+                  file=sys.stderr)
+            return 1
     print(summary(result))
     return 0
 

@@ -37,26 +37,26 @@ def _percentiles(seconds) -> dict:
 
 
 def compute_per_wrench(settings, n: int = 20000) -> dict:
-    """The wrench callback's work without the executor: check, feasibility, Newmark, message."""
+    """The wrench callback's work without the executor (msg_adapters.inputs.InputHandler:
+    checks, feasibility, Newmark to the stamp) and the prediction message."""
+    from cdpr_dynamics.config import NODE_PARAMETER_BY_NAME
     from cdpr_dynamics.live import LivePredictor
     from msg_adapters.displacement import displacement_message
+    from msg_adapters.inputs import InputHandler
     from msg_adapters.validation import s_to_stamp
-    from msg_adapters.wrench import read_wrench, wrench_message
+    from msg_adapters.wrench import wrench_message
 
     predictor = LivePredictor(settings)
     frame = settings.robot.frame_id
+    inputs = InputHandler(predictor, frame,
+                          NODE_PARAMETER_BY_NAME['node.quaternion_tolerance'].default)
     msgs = [wrench_message([0.0, 0.0, 1000.0 * np.sin(2 * np.pi * 5 * k * 1e-3)], frame_id=frame,
                            stamp=s_to_stamp(100.0 + k * 1e-3)) for k in range(n)]
     times = []
-    last = None
     for msg in msgs:
         start = time.perf_counter()
-        w = read_wrench(msg, frame, last)
-        if predictor.wrench_reason(w.force_n, w.moment_nm):
-            raise RuntimeError('benchmark wrench infeasible')
-        u = predictor.advance(w.stamp_ns, w.force_n, w.moment_nm)
+        u = inputs.wrench(msg)
         displacement_message(u, frame, msg.header.stamp)
-        last = w.stamp_ns
         times.append(time.perf_counter() - start)
     result = _percentiles(times[100:])
     result['method'] = settings.method
@@ -197,7 +197,8 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
                 got_before = len(received)
             out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node', 'flood',
                                   '--rate', str(rate), '--duration', str(flood_s),
-                                  '--start-s', str(t_next)], env=env, capture_output=True,
+                                  '--start-s', str(t_next), '--frame', frame], env=env,
+                                 capture_output=True,
                                  text=True, timeout=flood_s + 60)
             if out.returncode != 0:
                 raise RuntimeError(out.stderr.strip().splitlines()[-1])
@@ -244,7 +245,8 @@ def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.
                                 stderr=subprocess.STDOUT, text=True)
     try:
         out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node', 'flood',
-                              '--rate', str(rate_hz), '--duration', str(duration_s)], env=env,
+                              '--rate', str(rate_hz), '--duration', str(duration_s), '--frame',
+                              load_settings(config).robot.frame_id], env=env,
                              capture_output=True, text=True, timeout=duration_s + 60)
         if out.returncode != 0:
             raise RuntimeError(out.stderr.strip().splitlines()[-1])

@@ -24,6 +24,7 @@ import sys
 import threading
 
 from cdpr_dynamics.config import METHODS
+from msg_adapters.inputs import NUMERIC_ERRORS, first_line
 
 PROG = 'cdpr_replay'
 
@@ -71,11 +72,6 @@ def _fail(message: str, code: int = 1) -> int:
     return code
 
 
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
-
-
 class _Bar:
     """tqdm on stderr, created on the first update (the total is known then)."""
 
@@ -101,9 +97,6 @@ class _Bar:
 
 
 def _offline(args) -> int:
-    from cdpr_dynamics.analysis import AnalysisError
-    from cdpr_dynamics.config import ConfigError
-    from cdpr_dynamics.dynamics import DynamicsError
     from cdpr_dynamics.recording import RecordingError
     from cdpr_dynamics.replay import (ReplayError, load_replay_config, replay_offline,
                                       summary_lines)
@@ -127,9 +120,9 @@ def _offline(args) -> int:
     except KeyboardInterrupt:
         bar.close()
         return _fail('interrupted; no output written', 130)
-    except (ReplayError, RecordingError, ConfigError, AnalysisError, DynamicsError) as exc:
+    except (ReplayError, RecordingError) + NUMERIC_ERRORS as exc:
         bar.close()
-        return _fail(_first_line(exc))
+        return _fail(first_line(exc))
     except OSError as exc:
         bar.close()
         return _fail(f'{getattr(exc, "filename", "") or ""} {exc.strerror or exc}'.strip())
@@ -151,7 +144,7 @@ def _live(args, argv) -> int:
         inspect_input(resolve_input(args.input), args.pose_topic, args.wrench_topic,
                       args.allow_incomplete)
     except (ReplayError, RecordingError) as exc:
-        return _fail(_first_line(exc))
+        return _fail(first_line(exc))
     stop = threading.Event()
 
     def on_signal(signum, frame):
@@ -173,7 +166,7 @@ def _live(args, argv) -> int:
                               allow_incomplete=args.allow_incomplete)
     except (ReplayError, RecordingError) as exc:
         bar.close()
-        return _fail(_first_line(exc))
+        return _fail(first_line(exc))
     except (KeyboardInterrupt, ExternalShutdownException):
         bar.close()
         return _fail('interrupted', 130)

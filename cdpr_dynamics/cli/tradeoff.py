@@ -225,9 +225,14 @@ def main(argv=None) -> int:
     except (ConfigError, AnalysisError, SelectionError) as exc:
         print(f'cdpr_tradeoff: error: {exc}', file=sys.stderr)
         return 1
-    write_csv(rows, args.csv)
     name = Path(args.config).stem if args.config else 'paper_cdpr'
-    plot(rows, reference, args.plot, name, settings.tolerance)
+    try:
+        write_csv(rows, args.csv)
+        plot(rows, reference, args.plot, name, settings.tolerance)
+    except OSError as exc:
+        print(f'cdpr_tradeoff: error: cannot write {exc.filename or ""}: {exc.strerror}',
+              file=sys.stderr)
+        return 1
     print(summary(rows, reference))
     print(choice.reason)
     print(f'wrote {args.csv} and {args.plot}')

@@ -116,6 +116,20 @@ def axial_transverse(unit: np.ndarray, axial: np.ndarray, transverse: np.ndarray
     return axial * uu + transverse * (np.eye(3) - uu)
 
 
+def massless_assembly(method: str, stiffness: np.ndarray, end_force_n: np.ndarray, valid: bool,
+                      warnings) -> CableAssembly:
+    """A model without cable DOFs: one node per cable with its (n, 3, 3) static ``stiffness``
+    at the platform end and no mass; its end stiffness is the same at every frequency."""
+    zeros = np.zeros((stiffness.shape[0], 0, 3, 3))
+    blocks = ChainBlocks(stiffness[:, None], zeros, np.zeros_like(stiffness)[:, None], zeros)
+
+    def end_stiffness(lam):
+        return np.broadcast_to(stiffness, (np.size(lam),) + stiffness.shape).astype(complex)
+
+    return CableAssembly(method, 1, end_stiffness, end_force_n, blocks, valid=valid,
+                         warnings=tuple(warnings))
+
+
 def slack_warnings(tension_n: np.ndarray) -> tuple[str, ...]:
     """Warnings for cables that carry no tension (T <= 0): straight models are invalid there."""
     return tuple(f'cable {i} is slack (T = {t:.3g} N <= 0): its geometric stiffness is not '

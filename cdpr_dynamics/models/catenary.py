@@ -67,7 +67,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cdpr_dynamics.models.base import CableAssembly, CableSet, ChainBlocks, axial_transverse
+from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse,
+                                       massless_assembly)
 
 
 # --------------------------------------------------------------------------- closed forms
@@ -316,17 +317,6 @@ def _newton(force, l0, res, norm, tol, live, target, t_safe, ea, gamma, up, scal
 
 # --------------------------------------------------------------------------- models
 
-def _massless(method, stiffness, end_force, valid, warnings) -> CableAssembly:
-    zeros = np.zeros((stiffness.shape[0], 0, 3, 3))
-    blocks = ChainBlocks(stiffness[:, None], zeros, np.zeros_like(stiffness)[:, None], zeros)
-
-    def end_stiffness(lam):
-        return np.broadcast_to(stiffness, (np.size(lam),) + stiffness.shape).astype(complex)
-
-    return CableAssembly(method, 1, end_stiffness, end_force, blocks, valid=valid,
-                         warnings=tuple(warnings))
-
-
 def placeholder_tension(cables: CableSet) -> np.ndarray:
     """Tension standing in for cables a model cannot represent: max(T, gamma L, 1e-9 EA) > 0."""
     _, gamma = up_and_weight(cables)
@@ -369,13 +359,13 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
         else:
             warnings.append(f'cable {i} is slack: tension {tension[i]:.3g} N at the platform '
                             f'cannot hold the {gamma * length[i]:.3g} N cable hanging below it')
-    return _massless('catenary', _stiffness(force, length, cables, ok),
-                     tension[:, None] * cables.unit, bool(np.all(ok)), warnings)
+    return massless_assembly('catenary', _stiffness(force, length, cables, ok),
+                             tension[:, None] * cables.unit, bool(np.all(ok)), warnings)
 
 
 def build_exact(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     """``catenary_exact``: Newton-consistent L0 and end force per cable (see :func:`solve`)."""
     state = solve(cables)
     stiffness = _stiffness(state.force_n, state.unstrained_length_m, cables, state.valid)
-    return _massless('catenary_exact', stiffness, -state.force_n, bool(np.all(state.valid)),
-                     state.reasons)
+    return massless_assembly('catenary_exact', stiffness, -state.force_n,
+                             bool(np.all(state.valid)), state.reasons)

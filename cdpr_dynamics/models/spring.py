@@ -8,22 +8,14 @@ so only the platform moves; DOFs are the platform's (3 or 6).
 """
 from __future__ import annotations
 
-import numpy as np
-
-from cdpr_dynamics.models.base import (CableAssembly, CableSet, ChainBlocks, axial_transverse,
-                                       slack_warnings)
+from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse,
+                                       massless_assembly, slack_warnings)
 
 
 def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     """Massless spring of every cable; ``elements_per_cable`` is ignored (always 1)."""
     length = cables.length_m
     stiffness = axial_transverse(cables.unit, cables.ea_n / length, cables.tension_n / length)
-    zeros = np.zeros((cables.n_cables, 0, 3, 3))
-    blocks = ChainBlocks(stiffness[:, None], zeros, np.zeros_like(stiffness)[:, None], zeros)
     warnings = slack_warnings(cables.tension_n)
-
-    def end_stiffness(lam):
-        return np.broadcast_to(stiffness, (np.size(lam),) + stiffness.shape).astype(complex)
-
-    return CableAssembly('spring', 1, end_stiffness, cables.tension_n[:, None] * cables.unit,
-                         blocks, valid=not warnings, warnings=warnings)
+    return massless_assembly('spring', stiffness, cables.tension_n[:, None] * cables.unit,
+                             not warnings, warnings)
