@@ -109,9 +109,6 @@ def damping_warnings(damping: Damping, frequency_hz: np.ndarray) -> list[str]:
             f'{frequency_hz[np.argmax(ratios)]:.3g} Hz)']
 
 
-STRAIGHT_METHODS = ('spring', 'fem', 'dsm')
-
-
 def sag_warnings(settings: Settings, method: str, sag_parameter: np.ndarray) -> list[str]:
     """Warn when a straight model ignores sag that matters at ``model.tolerance``.
 
@@ -119,7 +116,7 @@ def sag_warnings(settings: Settings, method: str, sag_parameter: np.ndarray) -> 
     model overestimates by about lambda^2/12 (Irvine, Cable Structures, 1981, sec. 3.4).
     """
     worst = float(np.max(sag_parameter, initial=0.0))
-    if method not in STRAIGHT_METHODS or not worst / 12.0 > settings.tolerance:
+    if method not in models.STRAIGHT_METHODS or not worst / 12.0 > settings.tolerance:
         return []
     error = f'~{100 * worst / 12.0:.3g} %' if worst < 12.0 else 'more than 100 %'
     return [f'sag: lambda^2 up to {worst:.3g}; {method} ignores sag and overestimates the axial '

@@ -67,14 +67,12 @@ from cdpr_dynamics.dynamics import (DENSE_EIGEN_DOFS, Damping, PlatformSystem, f
 from cdpr_dynamics.models.base import CableAssembly, CableSet, axial_transverse
 from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.models.dsm import natural_frequencies_dsm, z_cot_z
-from cdpr_dynamics.models.fem import chain_end_stiffness
 
 MAX_ELEMENTS = 256          # largest n auto considers (fem_sag n = 256: 6123 DOFs, 8 cables)
 MISSED = 1.0                # error of a missed mode (and the cap of every error)
 SAG_NEGLIGIBLE = 0.1        # sag negligible for the yardstick below this fraction of tolerance
 SAFETY = 1.25               # auto needs SAFETY * estimate <= tolerance (estimate checked in tests)
 MASSLESS = ('spring', 'fem', 'catenary', 'catenary_exact')   # in this order at n = 1
-STRAIGHT = ('spring', 'fem', 'dsm')
 STEP = 1.25                 # n grows by this factor while the estimate is above the tolerance
 
 
@@ -285,14 +283,8 @@ def true_end_stiffness(sc: Scene, lam, sag_scale: float = 1.0,
 
 def _straight_end_stiffness(cables: CableSet, n: int | None, lam) -> np.ndarray:
     """Straight continuous cables (n None, ``dsm``) or the FEM chain of n elements."""
-    lam = np.asarray(lam, dtype=complex)
-    if n is None:
-        return models.build('dsm', cables).end_stiffness(lam)
-    length = cables.length_m / n
-    m_element = cables.mass_per_length_kg_m * length
-    axial = chain_end_stiffness(cables.ea_n / length, m_element, n, lam)
-    transverse = chain_end_stiffness(cables.tension_n / length, m_element, n, lam)
-    return axial_transverse(cables.unit, axial, transverse)
+    method = 'dsm' if n is None else 'fem'
+    return models.build(method, cables, n or 1).end_stiffness(np.asarray(lam, dtype=complex))
 
 
 def model_end_stiffness(sc: Scene, method: str, n: int, lam,
@@ -445,7 +437,7 @@ class Estimator:
             disc = float(max(dispersion_error(np.pi * jt / n).max(),
                              dispersion_error(np.pi * ja / n).max()))
             error, cause = disc, f'cable mode {top} off by {_pct(disc)} % (n = {n})'
-        if method in STRAIGHT:
+        if method in models.STRAIGHT_METHODS:
             with_mode = jt > 0
             sym = np.where(with_mode, np.minimum(sc.symmetric_shift, MISSED), 0.0).max()
             tension = np.where(with_mode, sc.tension_shift, 0.0).max()

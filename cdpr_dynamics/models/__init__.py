@@ -8,6 +8,9 @@ from __future__ import annotations
 from cdpr_dynamics.models import catenary, dsm, fem, fem_sag, spring
 from cdpr_dynamics.models.base import CableAssembly, CableSet
 
+#: Models of straight cables: they ignore sag.
+STRAIGHT_METHODS = ('spring', 'fem', 'dsm')
+
 REGISTRY = {
     'spring': spring.build,
     'fem': fem.build,
