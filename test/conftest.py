@@ -4,13 +4,17 @@ from __future__ import annotations
 import itertools
 import os
 import shutil
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 TEST_OUTPUT = REPO / 'test_output'
+PAPER_CONFIG = REPO / 'config' / 'paper_cdpr.yaml'
 _domain_counter = itertools.count()
 
 
@@ -69,3 +73,37 @@ def output_dir(request) -> Path:
                 folder.rmdir()
             except OSError:
                 break
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def write_config(tmp_path, **changes) -> Path:
+    """The paper config with ``section.name=value`` changes, written under ``tmp_path``."""
+    doc = yaml.safe_load(PAPER_CONFIG.read_text())
+    params = doc['cdpr_dynamics']['ros__parameters']
+    for dotted, value in changes.items():
+        section, name = dotted.split('.')
+        params[section][name] = value
+    path = tmp_path / 'robot.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def analyze(*args, env=None) -> subprocess.CompletedProcess:
+    """Run the installed ``cdpr_analyze`` (one BLAS thread) with ``args``."""
+    exe = Path(sys.executable).with_name('cdpr_analyze')
+    return subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True,
+                          timeout=300, env={**(env or os.environ), 'OMP_NUM_THREADS': '1'})
+
+
+def wait_until(condition, timeout: float, what: str, period: float = 0.05):
+    """Poll ``condition`` until it returns something true (returned) or ``timeout`` s pass."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+        time.sleep(period)

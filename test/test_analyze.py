@@ -7,31 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from numpy.testing import assert_allclose
 
 from cdpr_dynamics.config import ConfigError, default_config_path, load_settings, \
     read_params_file, settings_from_params
+from conftest import analyze, write_config
 
-ROOT = Path(__file__).resolve().parent.parent
-PAPER = ROOT / 'config' / 'paper_cdpr.yaml'
-
-
-def analyze(*args, cwd=None):
-    exe = Path(sys.executable).with_name('cdpr_analyze')
-    return subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True,
-                          timeout=300, cwd=cwd)
-
-
-def write_config(tmp_path, **changes):
-    doc = yaml.safe_load(PAPER.read_text())
-    params = doc['cdpr_dynamics']['ros__parameters']
-    for dotted, value in changes.items():
-        section, name = dotted.split('.')
-        params[section][name] = value
-    path = tmp_path / 'robot.yaml'
-    path.write_text(yaml.safe_dump(doc))
-    return path
 
 
 def test_paper_config_is_the_default_and_matches_table_1():

@@ -28,6 +28,7 @@ from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 from cdpr_dynamics.recording import (
     read_messages, recording_info, RecordingError, recover_recording)
 from msg_adapters import mcap_schema
+from conftest import wait_until
 
 PYTHON = sys.executable
 N_PER_TOPIC = 20
@@ -162,17 +163,6 @@ elif mode in ('steady', 'flood'):
 
 
 # ----------------------------------------------------------------------------- helpers
-
-
-def wait_until(condition, timeout: float, what: str, period: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out after {timeout} s waiting for {what}')
-        time.sleep(period)
 
 
 class Processes:

@@ -50,6 +50,7 @@ from msg_adapters import mcap_schema
 from msg_adapters.pose import pose_message
 from msg_adapters.validation import stamp_to_ns
 from msg_adapters.wrench import wrench_message
+from conftest import wait_until
 
 PYTHON = sys.executable
 REPO = Path(__file__).resolve().parents[1]
@@ -526,17 +527,6 @@ def procs(ros_env, output_dir):
         p = Processes(env, output_dir)
         yield p
         p.stop_all()
-
-
-def wait_until(condition, timeout: float, what: str, period: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out after {timeout} s waiting for {what}')
-        time.sleep(period)
 
 
 def counts_so_far(path: Path) -> dict:

@@ -9,14 +9,10 @@ resonance; a linear response that would slacken a cable (flagged; --slack-aware)
 """
 import json
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from cdpr_dynamics import models
 from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, build_system, equilibrium,
@@ -30,6 +26,7 @@ from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.models.dsm import natural_frequencies_dsm
 from cdpr_dynamics.selection import accuracy_warnings, choose_model, measure_error, \
     reference_solution
+from conftest import analyze, write_config
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'paper_cdpr.yaml'
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -46,23 +43,6 @@ def finite_stiffness(assembly):
     k = assembly.static_end_stiffness()
     dynamic = assembly.end_stiffness(np.array([(2 * np.pi * 5.0) ** 2 * (1 - 0.01j)]))
     return np.all(np.isfinite(k)) and np.all(np.isfinite(dynamic))
-
-
-def write_config(tmp_path, **changes):
-    doc = yaml.safe_load(CONFIG.read_text())
-    params = doc['cdpr_dynamics']['ros__parameters']
-    for name, value in changes.items():
-        section, key = name.split('.')
-        params[section][key] = value
-    path = tmp_path / 'scene.yaml'
-    path.write_text(yaml.safe_dump(doc))
-    return path
-
-
-def analyze(*args):
-    exe = Path(sys.executable).with_name('cdpr_analyze')
-    return subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True,
-                          timeout=300, env={**os.environ, 'OMP_NUM_THREADS': '1'})
 
 
 # --------------------------------------------------------------------------- catenary
