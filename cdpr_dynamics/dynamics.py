@@ -78,13 +78,18 @@ class PlatformSystem:
         w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
         scale = 1.0 + 1j * w * damping.stiffness_factor
         lam = (w * w - 1j * w * damping.mass_factor) / scale
-        ends = self.assembly.end_stiffness(lam)                  # (nl, n, 3, 3)
-        nd = self.platform_dofs
-        flat = ends.reshape(w.size, -1)      # real GEMMs: far faster than a complex one here
-        cables = (flat.real @ self._congruence + 1j * (flat.imag @ self._congruence)) \
-            .reshape(w.size, nd, nd)
+        cables = self.cables_on_platform(self.assembly.end_stiffness(lam))
         own = self.platform_stiffness[None] - lam[:, None, None] * self.platform_mass[None]
         return scale[:, None, None] * (own + cables)
+
+    def cables_on_platform(self, ends: np.ndarray) -> np.ndarray:
+        """sum_i G_i^T S_i G_i: stacked cable end stiffnesses (nl, n, 3, 3) on the platform
+        DOFs, (nl, ndof, ndof); real in, real out."""
+        flat = ends.reshape(ends.shape[0], -1)
+        out = flat.real @ self._congruence   # real GEMMs: far faster than a complex one here
+        if np.iscomplexobj(flat):
+            out = out + 1j * (flat.imag @ self._congruence)
+        return out.reshape(-1, self.platform_dofs, self.platform_dofs)
 
     @functools.cached_property
     def _congruence(self) -> np.ndarray:

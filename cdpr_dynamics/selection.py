@@ -357,21 +357,6 @@ class Estimator:
         self.mode_shapes = vectors[:, keep]
         self.mode_mass = np.einsum('ik,ij,jk->k', self.mode_shapes, m, self.mode_shapes)
 
-    @functools.cached_property
-    def _congruence_matrix(self) -> np.ndarray:
-        g = self.eq.geometry.attachment_map()
-        nd = g.shape[2]
-        return np.einsum('cia,cjb->cijab', g, g).reshape(-1, nd * nd)
-
-    def _congruence(self, ends: np.ndarray) -> np.ndarray:
-        """sum_i G_i^T S_i G_i for stacked end stiffnesses (nl, n, 3, 3) -> (nl, nd, nd)."""
-        flat = ends.reshape(ends.shape[0], -1)
-        nd = self.truth_system.platform_dofs
-        out = flat.real @ self._congruence_matrix
-        if np.iscomplexobj(flat):
-            out = out + 1j * (flat.imag @ self._congruence_matrix)
-        return out.reshape(-1, nd, nd)
-
     def frf_error(self, method: str, n: int) -> float:
         """First-order relative FRF error of the centroid's translation, max over the sweep.
 
@@ -382,7 +367,7 @@ class Estimator:
             return 0.0
         ends = model_end_stiffness(self.scene, method, n, self.lam, self._straight_frf_ends)
         scale = 1.0 + 1j * self.omega * self.damping.stiffness_factor
-        dz = scale[:, None, None] * self._congruence(ends - self._truth_frf_ends)
+        dz = scale[:, None, None] * self.truth_system.cables_on_platform(ends - self._truth_frf_ends)
         response = self._truth_response                                  # (nf, nd, loads)
         with np.errstate(all='ignore'):
             change = np.linalg.solve(self._truth_frf, dz @ response)
@@ -411,7 +396,7 @@ class Estimator:
         lam = self.mode_omega ** 2
         ends = model_end_stiffness(self.scene, method, n, lam, self._straight_modes_ends)
         with np.errstate(all='ignore'):
-            dz = self._congruence(ends - self._truth_modes_ends).real
+            dz = self.truth_system.cables_on_platform(ends - self._truth_modes_ends).real
             phi = self.mode_shapes
             shift = np.abs(np.einsum('ak,kab,bk->k', phi, dz, phi)) / (
                 2.0 * lam * self.mode_mass)
