@@ -37,7 +37,8 @@ def imported_modules(folders):
                     names |= {a.name.split('.')[0] for a in node.names}
                 elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                     names.add(node.module.split('.')[0])
-    return names - OWN - set(sys.stdlib_module_names)
+    local = {path.stem for folder in folders for path in (ROOT / folder).glob('*.py')}
+    return names - OWN - local - set(sys.stdlib_module_names)
 
 
 def test_package_xml_is_format_3_ament_python():
