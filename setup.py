@@ -31,6 +31,7 @@ setup(
             'cdpr_demo = cdpr_dynamics.cli.demo:main',
             'cdpr_tradeoff = cdpr_dynamics.cli.tradeoff:main',
             'cdpr_replay = cdpr_dynamics.cli.replay:main',
+            'cdpr_workspace = cdpr_dynamics.cli.workspace:main',
         ],
     },
 )

@@ -6,33 +6,27 @@ Every step raises :class:`AnalysisError` with a one-line reason that names the c
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
 from cdpr_dynamics import models
 from cdpr_dynamics.config import Settings
-from cdpr_dynamics.dynamics import (Damping, DynamicsError, PlatformSystem, frequency_response,
-                                    natural_frequencies, platform_frequencies, platform_system,
-                                    rayleigh_from_modal_ratio)
+from cdpr_dynamics.dynamics import (Damping, DynamicsError, PlatformSystem, configured_damping,
+                                    frequency_response, natural_frequencies, platform_system)
+from cdpr_dynamics.feasibility import cable_crossing
 from cdpr_dynamics.models.base import CableSet
+from cdpr_dynamics.models.catenary import (end_position, paper_misclosure, sag_parameter,
+                                          up_and_weight)
 from cdpr_dynamics.robot import Geometry, GeometryError, geometry, required_wrench
-from cdpr_dynamics.tensions import TensionResult, TensionSolver
+from cdpr_dynamics.selection import choose_model
+from cdpr_dynamics.statics import Equilibrium, StaticsError, equilibrium_for
+from cdpr_dynamics.tensions import TensionSolver
 
 HEAVY_DAMPING_RATIO = 1.0
 
 
 class AnalysisError(RuntimeError):
     """An analysis that cannot be done for this scene; the message is one line."""
-
-
-@dataclass(frozen=True, eq=False)
-class Equilibrium:
-    """Static state at one pose: geometry, tension distribution, and the cables for a model."""
-
-    geometry: Geometry
-    tensions: TensionResult
-    cables: CableSet
 
 
 def new_tension_solver(settings: Settings) -> TensionSolver:
@@ -42,15 +36,53 @@ def new_tension_solver(settings: Settings) -> TensionSolver:
                          settings.tension_max_n)
 
 
+_WRENCH_AXES = ('force x', 'force y', 'force z', 'moment x', 'moment y', 'moment z')
+RANK_TOLERANCE = 1e-9     # singular values below this times the largest count as zero
+
+
+def structure_rank(structure_matrix: np.ndarray) -> tuple[int, float, np.ndarray]:
+    """(rank, condition number, the least reachable unit wrench direction) of W^T."""
+    u, sing, _ = np.linalg.svd(structure_matrix)
+    rank = int(np.sum(sing > RANK_TOLERANCE * sing[0])) if sing.size else 0
+    condition = float(sing[0] / sing[-1]) if sing.size and sing[-1] > 0 else float('inf')
+    return rank, condition, u[:, -1]
+
+
+def _check_design(settings: Settings, geo: Geometry) -> None:
+    """Refuse a structure matrix of rank below the platform DOFs, and crossing cables."""
+    ndof = settings.robot.platform_dofs
+    rank, _, direction = structure_rank(geo.structure_matrix)
+    if rank < ndof:
+        axis = _WRENCH_AXES[int(np.argmax(np.abs(direction)))]
+        raise AnalysisError(f'the structure matrix has rank {rank} < {ndof} platform DOFs: no '
+                            f'cable tensions produce a wrench along '
+                            f'{np.round(direction, 3).tolist()} (mostly {axis}), so the '
+                            'platform is not held in that direction')
+    if not settings.robot.point_mass:   # a point mass's cables all end at one point
+        clearance = 2.0 * np.sqrt(settings.cable.area_m2 / np.pi)
+        reason = cable_crossing(settings.robot.anchors_m, geo.position_m + geo.lever_m,
+                                clearance)
+        if reason:
+            raise AnalysisError(reason)
+
+
 def equilibrium(settings: Settings, position_m=None, rotation=None,
-                solver: TensionSolver | None = None) -> Equilibrium:
-    """Tensions balancing gravity and the static ``load.*`` wrench at pose (p, R) (Eqs. 8-12)."""
+                solver: TensionSolver | None = None, method: str | None = None,
+                start: Equilibrium | None = None) -> Equilibrium:
+    """Tensions balancing gravity and the static ``load.*`` wrench at pose (p, R).
+
+    The chord statics of Eqs. 8-12, and for a sag-aware ``method`` (:data:`SAG_METHODS`) the
+    sag-consistent statics started from it (warm-started from ``start``, e.g. the previous
+    pose). Refuses (AnalysisError) a pose outside the frame, crossing cables, a structure
+    matrix of rank below the platform DOFs and an infeasible distribution.
+    """
     position = settings.initial_position_m if position_m is None else position_m
     rotation = settings.initial_rotation if rotation is None else rotation
     try:
         geo = geometry(settings.robot, position, rotation)
     except GeometryError as exc:
         raise AnalysisError(str(exc)) from None
+    _check_design(settings, geo)
     wrench = required_wrench(settings.robot, settings.external_force_n,
                              settings.external_moment_nm)
     result = (solver or new_tension_solver(settings)).solve(geo.structure_matrix, wrench)
@@ -58,44 +90,57 @@ def equilibrium(settings: Settings, position_m=None, rotation=None,
         raise AnalysisError(f'infeasible tension distribution: {result.reason}')
     cables = CableSet(geo.chord_m, result.tension_n, settings.cable.ea_n,
                       settings.cable.weight_per_length_n_per_m, settings.robot.gravity_m_s2)
-    return Equilibrium(geo, result, cables)
+    ea = settings.cable.ea_n
+    chord = Equilibrium(geo, result, cables, 'chord', result.tension_n[:, None] * geo.unit,
+                        geo.length_m * ea / (ea + result.tension_n),
+                        geo.structure_matrix @ result.tension_n - wrench, result.iterations)
+    try:
+        return equilibrium_for(settings, chord, method, start)
+    except StaticsError as exc:
+        raise AnalysisError(str(exc)) from None
+
+
+def equilibrium_summary(settings: Settings, eq: Equilibrium) -> dict:
+    """The JSON ``equilibrium`` block (SPEC section 6): residuals and per-cable statics."""
+    residual = np.asarray(eq.residual, dtype=float)
+    weight = float(np.linalg.norm(required_wrench(settings.robot, settings.external_force_n,
+                                                  settings.external_moment_nm)[:3]))
+    arm = float(np.linalg.norm(eq.geometry.lever_m, axis=1).max(initial=0.0))
+    force = float(np.linalg.norm(residual[:3]))
+    moment = float(np.linalg.norm(residual[3:])) if residual.size > 3 else 0.0
+    scale = weight if weight > 0 else settings.tension_max_n
+    relative = max(force, moment / arm if arm > 0 else 0.0) / scale
+    return {'statics': eq.statics, 'residual_n': force, 'residual_nm': moment,
+            'relative_residual': relative, 'iterations': int(eq.iterations),
+            'end_force_n': np.asarray(eq.end_force_n).tolist(),
+            'unstretched_length_m': np.asarray(eq.unstretched_length_m).tolist()}
 
 
 def build_system(settings: Settings, eq: Equilibrium, method: str | None = None,
                  elements_per_cable: int | None = None) -> PlatformSystem:
-    """The platform system of ``method`` (default ``settings.method``) at ``eq``."""
+    """The platform system of ``method`` (default ``settings.method``) at ``eq``, linearised
+    about the statics the method needs (:func:`equilibrium_for`: a sag-aware model at a chord
+    equilibrium is built at the sag-consistent one; callers that report tensions convert
+    ``eq`` themselves first)."""
     method = method or settings.method
     elements = elements_per_cable or settings.elements_per_cable
     if method == 'auto':
-        from cdpr_dynamics.selection import choose_model
         choice = choose_model(settings, eq)
         method, elements = choice.method, choice.elements_per_cable
     try:
+        eq = equilibrium_for(settings, eq, method)
         assembly = models.build(method, eq.cables, elements)
-    except ValueError as exc:
+    except ValueError as exc:           # StaticsError too
         raise AnalysisError(str(exc)) from None
     return platform_system(settings.robot, eq.geometry, assembly)
 
 
 def damping_for(settings: Settings, system: PlatformSystem | None = None) -> Damping:
-    """Rayleigh damping of the settings, or fitted to ``damping.modal_ratio`` when it is > 0.
-
-    The fit puts the ratio at the lowest and at the highest platform mode below
-    ``frf.f_max_hz`` (modes in between are damped a little less): the modes of the platform
-    mass on the model's statically condensed cables, so every model of a scene gets the same
-    damping (to the ~1 % its static stiffness differs by) and no cable mode decides it.
-    """
-    if settings.damping_modal_ratio <= 0.0:
-        return Damping(settings.damping_mass_factor, settings.damping_stiffness_factor)
-    if system is None:
-        raise AnalysisError('damping.modal_ratio needs the model to fit Rayleigh factors')
-    freqs = platform_frequencies(system)
-    freqs = freqs[freqs > 0]
-    if freqs.size == 0:
-        raise AnalysisError('no positive platform mode to fit damping.modal_ratio to')
-    in_band = freqs[freqs <= settings.f_max_hz]
-    high = in_band[-1] if in_band.size else freqs[0]
-    return rayleigh_from_modal_ratio(settings.damping_modal_ratio, freqs[0], high)
+    """:func:`cdpr_dynamics.dynamics.configured_damping`, its failures as AnalysisError."""
+    try:
+        return configured_damping(settings, system)
+    except DynamicsError as exc:
+        raise AnalysisError(str(exc)) from None
 
 
 def damping_warnings(damping: Damping, frequency_hz: np.ndarray) -> list[str]:
@@ -109,19 +154,81 @@ def damping_warnings(damping: Damping, frequency_hz: np.ndarray) -> list[str]:
             f'{frequency_hz[np.argmax(ratios)]:.3g} Hz)']
 
 
-def sag_warnings(settings: Settings, method: str, sag_parameter: np.ndarray) -> list[str]:
-    """Warn when a straight model ignores sag that matters at ``model.tolerance``.
+def geometry_summary(eq: Equilibrium, samples: int = 65) -> dict:
+    """The JSON ``geometry`` block: structure-matrix rank and condition number, and per cable
+    the largest distance (m) of its static shape from the chord (0 for straight statics; the
+    elastic catenary at the sag-consistent tensions), sampled at ``samples`` points."""
+    rank, condition, _ = structure_rank(eq.geometry.structure_matrix)
+    sag = np.zeros(eq.cables.n_cables)
+    if eq.statics == 'sag':
+        shape = cable_shapes(eq, samples)                  # (n, samples, 3), from the platform
+        chord = np.asarray(eq.cables.chord_m)
+        along = np.clip(np.einsum('nsk,nk->ns', shape, chord) / np.sum(chord * chord, axis=1)
+                        [:, None], 0.0, 1.0)
+        sag = np.linalg.norm(shape - along[..., None] * chord[:, None, :], axis=2).max(axis=1)
+    return {'structure_matrix_rank': rank, 'structure_matrix_condition': condition,
+            'max_sag_m': sag.tolist()}
 
-    Irvine's effective modulus E/(1 + lambda^2/12) gives the axial stiffness a straight cable
-    model overestimates by about lambda^2/12 (Irvine, Cable Structures, 1981, sec. 3.4).
+
+def cable_shapes(eq: Equilibrium, samples: int = 65) -> np.ndarray:
+    """(n, samples, 3) points of each cable's static shape relative to its attachment, from
+    the platform end (point 0) to the anchor: the elastic catenary of a sag equilibrium, the
+    chord otherwise."""
+    t = np.linspace(0.0, 1.0, samples)
+    chord = np.asarray(eq.cables.chord_m, dtype=float)
+    if eq.statics != 'sag':
+        return t[None, :, None] * chord[:, None, :]
+    state = eq.sag.state
+    up, gamma = up_and_weight(eq.cables)
+    sigma = state.unstrained_length_m[:, None] * t[None, :]
+    force = np.broadcast_to(state.force_n[:, None, :], sigma.shape + (3,))
+    return -end_position(force, sigma, eq.cables.ea_n, gamma, up)
+
+
+def model_warnings(settings: Settings, eq: Equilibrium, assembly) -> list[str]:
+    """Warnings on how well the model of ``assembly`` describes the state ``eq``.
+
+    The statics' own warnings (e.g. a lifted lower tension bound), and where its error exceeds
+    ``model.tolerance``:
+
+    * a straight model (spring, fem, dsm) ignores sag: Irvine's effective modulus
+      E/(1 + lambda^2/12) says it overestimates the axial stiffness by about lambda^2/12
+      (Irvine, Cable Structures, 1981, sec. 3.4);
+    * fem_sag with n elements resolves the sag compliance up to (1 - 1/n^2) (the midpoint rule
+      of n straight elements), an axial stiffness error of
+      (lambda^2/(12 n^2)) / (1 + lambda^2 (1 - 1/n^2)/12): n = 1 is the straight chord;
+    * the paper's catenary takes L0 = chord and the end force along the chord: its catenary
+      misses the anchor by :func:`~cdpr_dynamics.models.catenary.paper_misclosure`, warned
+      above ``model.tolerance`` of the chord.
     """
-    worst = float(np.max(sag_parameter, initial=0.0))
-    if method not in models.STRAIGHT_METHODS or not worst / 12.0 > settings.tolerance:
-        return []
-    error = f'~{100 * worst / 12.0:.3g} %' if worst < 12.0 else 'more than 100 %'
-    return [f'sag: lambda^2 up to {worst:.3g}; {method} ignores sag and overestimates the axial '
-            f'stiffness by {error} (> model.tolerance {100 * settings.tolerance:g} %): use '
-            'catenary_exact or fem_sag']
+    warnings = list(eq.warnings)
+    lam2 = sag_parameter(eq.cables)
+    worst = float(np.max(lam2, initial=0.0))
+    tol = settings.tolerance
+    method, n = assembly.method, assembly.elements_per_cable
+    if method in models.STRAIGHT_METHODS and worst / 12.0 > tol:
+        error = f'~{100 * worst / 12.0:.3g} %' if worst < 12.0 else 'more than 100 %'
+        warnings.append(f'sag: lambda^2 up to {worst:.3g}; {method} ignores sag and '
+                        f'overestimates the axial stiffness by {error} (> model.tolerance '
+                        f'{100 * tol:g} %): use catenary_exact or fem_sag')
+    if method == 'fem_sag' and np.isfinite(worst):
+        error = (worst / (12.0 * n * n)) / (1.0 + worst * (1.0 - 1.0 / (n * n)) / 12.0)
+        if error > tol:
+            size = f'~{100 * error:.3g} %' if error < 1.0 else 'more than 100 %'
+            warnings.append(f'sag: lambda^2 up to {worst:.3g}; fem_sag with {n} element'
+                            f'{"s" if n > 1 else ""} per cable under-resolves the sag and '
+                            f'overestimates the axial stiffness by {size} (> model.tolerance '
+                            f'{100 * tol:g} %): use more elements')
+    if method == 'catenary':
+        miss = paper_misclosure(eq.cables) / eq.geometry.length_m
+        i = int(np.argmax(miss))
+        if miss[i] > tol:
+            warnings.append(f'catenary: the paper\'s assumed catenary of cable {i} (L0 = chord, '
+                            f'end force along the chord) misses its anchor by '
+                            f'{miss[i] * eq.geometry.length_m[i]:.3g} m ({100 * miss[i]:.3g} % '
+                            f'of the chord > model.tolerance {100 * tol:g} %): use '
+                            'catenary_exact')
+    return warnings
 
 
 FRF_ARRAYS = ('frequency_hz', 'amplitude_x_m', 'amplitude_y_m', 'amplitude_z_m', 'phase_x_rad',

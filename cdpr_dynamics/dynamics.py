@@ -53,6 +53,30 @@ def rayleigh_from_modal_ratio(ratio: float, f1_hz: float, f2_hz: float) -> Dampi
     return Damping(2 * ratio * w1 * w2 / (w1 + w2), 2 * ratio / (w1 + w2))
 
 
+def configured_damping(settings, system: 'PlatformSystem | None' = None) -> Damping:
+    """Rayleigh damping of the settings, or fitted to ``damping.modal_ratio`` when it is > 0.
+
+    ``settings`` has ``damping_modal_ratio``, ``damping_mass_factor``,
+    ``damping_stiffness_factor`` and ``f_max_hz``. The fit puts the ratio at the lowest and at
+    the highest platform mode below ``frf.f_max_hz`` (modes in between are damped a little
+    less): the modes of the platform mass on the model's statically condensed cables
+    (:func:`platform_frequencies`), so every model of a scene gets the same damping (to the
+    ~1 % its static stiffness differs by) and no cable mode decides it. Raises
+    :class:`DynamicsError` when the fit has no system or no positive platform mode.
+    """
+    if settings.damping_modal_ratio <= 0.0:
+        return Damping(settings.damping_mass_factor, settings.damping_stiffness_factor)
+    if system is None:
+        raise DynamicsError('damping.modal_ratio needs the model to fit Rayleigh factors')
+    freqs = platform_frequencies(system)
+    freqs = freqs[freqs > 0]
+    if freqs.size == 0:
+        raise DynamicsError('no positive platform mode to fit damping.modal_ratio to')
+    in_band = freqs[freqs <= settings.f_max_hz]
+    high = in_band[-1] if in_band.size else freqs[0]
+    return rayleigh_from_modal_ratio(settings.damping_modal_ratio, freqs[0], high)
+
+
 @dataclass(frozen=True, eq=False)
 class PlatformSystem:
     """The linear dynamic model of the robot at one state (geometry, tensions, cable model)."""

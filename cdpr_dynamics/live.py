@@ -8,8 +8,10 @@ offline replay and the live node give the same numbers by construction.
   otherwise nothing is recomputed. A failure leaves the last good state in place.
 * :meth:`LivePredictor.advance`: zero-order hold of the wrench: the wrench received at
   ``t_k`` acts from ``t_k`` until the next one; advancing to ``t_{k+1}`` integrates
-  ``floor((t_{k+1} - t_k)/dt)`` Newmark steps of ``newmark.dt_s`` (the remainder carries over)
-  and returns the centroid's displacement from equilibrium at ``t_{k+1}``.
+  ``floor((t_{k+1} - t_k)/dt)`` Newmark steps of ``newmark.dt_s`` (the remainder carries over),
+  at most ``max_steps_per_wrench`` of them (the rest of a longer interval is dropped, the state
+  kept), and returns the centroid's displacement from equilibrium at ``t_{k+1}``. The state of
+  motion carries over pose updates and model changes (:func:`carry_state`).
 """
 from __future__ import annotations
 
@@ -17,17 +19,24 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, build_system, damping_for,
-                                    equilibrium, new_tension_solver, sag_warnings)
+                                    equilibrium, equilibrium_for, model_warnings,
+                                    new_tension_solver)
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.dynamics import DynamicsError, Newmark, PlatformSystem
-from cdpr_dynamics.feasibility import WrenchSet, cable_crossing
+from cdpr_dynamics.feasibility import WrenchSet
 from cdpr_dynamics.models.catenary import sag_parameter
-from cdpr_dynamics.robot import GeometryError, geometry, quaternion_to_matrix, required_wrench
+from cdpr_dynamics.robot import quaternion_to_matrix, required_wrench
+from cdpr_dynamics.selection import choose_model
+from cdpr_dynamics.statics import structure_of
 
 FALLBACK_METHOD = 'spring'
-MAX_GAP_S = 1.0
+MAX_STEPS_PER_WRENCH = 1000    # default of node.max_steps_per_wrench (1 s at dt = 1 ms)
+TYPICAL_INTERVAL_S = 0.01      # a wrench interval the step cap should cover (100 Hz input)
+STEPS_PER_PERIOD = 20          # Newmark steps per period that resolve a mode to ~1 %
 AUTO_RECHOOSE_M = 0.05
 DENSE_NEWMARK_DOFS = 100    # up to this size dense matrices are cheaper to build and solve
 
@@ -65,6 +74,8 @@ class LivePredictor:
         self._t_ns: int | None = None    # stamp of the held wrench
         self._remainder_ns = 0
         self._load = None
+        self.max_steps_per_wrench = MAX_STEPS_PER_WRENCH
+        self.notice = ''                 # what the last advance() left out, or ''
         self.update_pose(settings.initial_position_m, rotation=settings.initial_rotation,
                          force=True)
 
@@ -88,15 +99,14 @@ class LivePredictor:
                               sag_parameter=self.last_update.sag_parameter)
         timings = {}
         start = time.perf_counter()
-        self._check_cables(position, rotation)
         eq = equilibrium(self.settings, position, rotation, self._solver)
-        s = self.settings        # the wrenches the cables can hold here (per state, not per wrench)
-        wrench_set = WrenchSet(eq.geometry.structure_matrix, s.tension_min_n, s.tension_max_n,
-                               required_wrench(s.robot, s.external_force_n, s.external_moment_nm))
         timings['tensions'] = time.perf_counter() - start
         start = time.perf_counter()
-        system, warnings = self._build(eq)
+        eq, system, warnings = self._build(eq)
         timings['model'] = time.perf_counter() - start
+        s = self.settings        # the wrenches the cables can hold here (per state, not per wrench)
+        wrench_set = WrenchSet(_tangent_structure(eq), s.tension_min_n, s.tension_max_n,
+                               required_wrench(s.robot, s.external_force_n, s.external_moment_nm))
         start = time.perf_counter()
         integrator = self._integrator(system)
         timings['factorisation'] = time.perf_counter() - start
@@ -104,27 +114,9 @@ class LivePredictor:
         self.integrator = integrator
         self.wrench_set = wrench_set
         sag = sag_parameter(eq.cables)
-        warnings += sag_warnings(self.settings, system.assembly.method, sag)
         self.last_update = PoseUpdate(True, system.assembly.method, system.dofs, timings,
                                       tuple(warnings), tuple(sag.tolist()))
         return self.last_update
-
-    def _check_cables(self, position, rotation) -> None:
-        """Raise :class:`AnalysisError` where cables would cross (clearance: cable diameter).
-
-        Cables of a point mass all end at one point and cannot cross: nothing to check.
-        """
-        robot = self.settings.robot
-        if robot.point_mass:
-            return
-        try:
-            geo = geometry(robot, position, rotation)
-        except GeometryError as exc:
-            raise AnalysisError(str(exc)) from None
-        clearance = 2.0 * np.sqrt(self.settings.cable.area_m2 / np.pi)
-        reason = cable_crossing(robot.anchors_m, geo.position_m + geo.lever_m, clearance)
-        if reason:
-            raise AnalysisError(reason)
 
     def wrench_reason(self, force_n, moment_nm=(0.0, 0.0, 0.0)) -> str:
         """Why the cables cannot hold this external wrench at the current pose, or ''."""
@@ -132,26 +124,35 @@ class LivePredictor:
 
     def _resolved_settings(self, eq: Equilibrium) -> Settings:
         """Settings with ``auto`` replaced by its choice, re-chosen only after the pose moved
-        more than ``AUTO_RECHOOSE_M`` (the choice costs 10-20 ms; it varies slowly)."""
+        more than ``AUTO_RECHOOSE_M`` (the choice costs 0.1-0.2 s; it varies slowly). The
+        choice keeps within ``model.max_dofs``: 600 DOFs factorise in ~7 ms (3102 in ~21 ms)."""
         s = self.settings
         if s.method != 'auto':
             return s
         moved = (self._choice is None or np.linalg.norm(eq.geometry.position_m
                                                          - self._choice_position) > AUTO_RECHOOSE_M)
         if moved:
-            from cdpr_dynamics.selection import choose_model
             self._choice = choose_model(s, eq)
             self._choice_position = eq.geometry.position_m
         return s.replace(method=self._choice.method,
                          elements_per_cable=self._choice.elements_per_cable)
 
+    def _choice_warnings(self) -> list[str]:
+        """auto's warning when no model within model.max_dofs meets model.tolerance."""
+        return list(self._choice.warnings) if self.settings.method == 'auto' else []
+
     def _build(self, eq: Equilibrium):
-        """The configured model, or the spring fallback (with a warning) where it is invalid."""
+        """(equilibrium, system, warnings) of the configured model at the chord equilibrium
+        ``eq`` (sag-consistent for sag-aware models, warm-started from the current state), or
+        of the spring fallback (with a warning) where the model is invalid."""
         warnings = []
         try:
-            system = build_system(self._resolved_settings(eq), eq)
+            resolved = self._resolved_settings(eq)
+            model_eq = equilibrium_for(resolved, eq, resolved.method, start=self.eq)
+            system = build_system(resolved, model_eq)
             if system.assembly.valid:
-                return system, list(system.assembly.warnings)
+                return model_eq, system, (list(system.assembly.warnings) + self._choice_warnings()
+                                          + model_warnings(resolved, model_eq, system.assembly))
             warnings += system.assembly.warnings
             failed = system.assembly.method
         except (AnalysisError, DynamicsError, ValueError) as exc:
@@ -163,16 +164,23 @@ class LivePredictor:
                 system.assembly.warnings))
         warnings.append(f'method {failed} failed for this state; fell back to '
                         f'{FALLBACK_METHOD}')
-        return system, warnings
+        return eq, system, warnings + model_warnings(self.settings, eq, system.assembly)
 
     def _integrator(self, system: PlatformSystem) -> Newmark:
+        """A Newmark integrator of ``system`` that carries on from the current one's state.
+
+        Same DOFs (a pose update): u, v, a are kept as they are. Other DOFs (a model change,
+        e.g. fem_sag <-> spring): the platform DOFs (the first ``platform_dofs`` entries) are
+        kept and the cable interior follows them quasi-statically, u_i = -K_ii^-1 K_ip u_p
+        (likewise v, a), so a method toggle never restarts the prediction from rest.
+        """
         s = self.settings
         k, m = system.matrices(dense=system.dofs <= DENSE_NEWMARK_DOFS)
         integrator = Newmark(k, m, damping_for(s, system), s.dt_s, s.newmark_alpha,
                              s.newmark_beta)
         old = self.integrator
-        if old is not None and old.u.shape == integrator.u.shape:
-            integrator.u, integrator.v, integrator.acc = old.u, old.v, old.acc
+        if old is not None:
+            carry_state(old, integrator, system.platform_dofs)
         return integrator
 
     def set_settings(self, settings: Settings) -> PoseUpdate:
@@ -195,32 +203,121 @@ class LivePredictor:
         Time is kept in integer nanoseconds: float seconds of a wall-clock stamp (~1.7e9 s)
         resolve only ~0.2 us and would miscount the Newmark steps of a 5 ms interval.
         Returns the centroid displacement (3,) m at the stamp. Raises ``ValueError`` for a stamp
-        older than the last one. A gap over ``MAX_GAP_S`` restarts from rest (the transient of
-        an old wrench is long gone or meaningless).
+        older than the last one (:meth:`rebase_time` first where the clock jumped back).
+
+        Bounded work: at most ``max_steps_per_wrench`` Newmark steps per call. A longer interval
+        (the input stalled, a long service call held the node) steps the held wrench that many
+        times and drops the rest of the interval: the state is kept, never reset to rest (under
+        a constant wrench it stays at the static deflection), and :attr:`notice` says how much
+        was dropped ('' otherwise).
         """
         stamp_ns = int(stamp_ns)
+        self.notice = ''
+        n = self.integrator.u.shape[0]
         nd = self.system.platform_dofs
-        load = np.zeros(self.integrator.u.shape)
+        load = np.zeros(n)
         load[:3] = force_n
         if nd == 6:
             load[3:6] = moment_nm
         if self._t_ns is not None and stamp_ns < self._t_ns:
             raise ValueError(f'stamp {stamp_ns * 1e-9:.9f} s is older than the last wrench '
                              f'({self._t_ns * 1e-9:.9f} s)')
-        if self._t_ns is None or stamp_ns - self._t_ns > MAX_GAP_S * 1e9 or self._load is None \
-                or self._load.shape != load.shape:
-            self.integrator.reset()
+        if self._t_ns is None or self._load is None:
             self._remainder_ns = 0
         else:
+            held = self._load
+            if held.shape != load.shape:          # the model changed: platform DOFs carry on
+                held = np.zeros(n)
+                held[:nd] = self._load[:nd]
             dt_ns = max(1, round(self.settings.dt_s * 1e9))
             steps, self._remainder_ns = divmod(stamp_ns - self._t_ns + self._remainder_ns, dt_ns)
+            cap = self.max_steps_per_wrench
+            if steps > cap:
+                self.notice = (f'{(stamp_ns - self._t_ns) * 1e-9:.6g} s since the last wrench '
+                               f'would take {steps} Newmark steps of {self.settings.dt_s:g} s; '
+                               f'integrated {cap} ({cap * self.settings.dt_s:.6g} s) of the held '
+                               f'wrench (node.max_steps_per_wrench) and skipped the rest, state '
+                               f'kept')
+                steps, self._remainder_ns = cap, 0
+            step = self.integrator.step
             for _ in range(steps):
-                self.integrator.step(self._load)
+                step(held)
         self._t_ns = stamp_ns
         self._load = load
         return self.integrator.u[:3].copy()
 
+    def rebase_time(self) -> None:
+        """Take the next wrench's stamp as the new time origin, keeping the state of motion
+        (after the input's clock jumped back: the platform did not stop)."""
+        self._t_ns = None
+        self._remainder_ns = 0
+
     def reset_time(self) -> None:
-        """Forget the wrench history (e.g. after a jump back in time)."""
+        """Forget the wrench history and the motion: the next wrench starts from rest."""
         self._t_ns = None
         self._load = None
+        self._remainder_ns = 0
+        if self.integrator is not None:
+            self.integrator.reset()
+
+
+def carry_state(old: Newmark, new: Newmark, platform_dofs: int) -> None:
+    """Give ``new`` the state of ``old`` (see :meth:`LivePredictor._integrator`)."""
+    if old.u.shape == new.u.shape:
+        new.u, new.v, new.acc = old.u, old.v, old.acc
+        return
+    nd = min(platform_dofs, old.u.size, new.u.size)
+    platform = np.column_stack([old.u[:nd], old.v[:nd], old.acc[:nd]])     # (nd, 3)
+    state = np.zeros((new.u.size, 3))
+    state[:nd] = platform
+    if new.u.size > platform_dofs:
+        k = new.k
+        interior = k[platform_dofs:, platform_dofs:]
+        coupling = k[platform_dofs:, :nd] @ platform
+        if sp.issparse(k):
+            state[platform_dofs:] = -np.asarray(spla.splu(sp.csc_matrix(interior)).solve(
+                np.asarray(coupling)))
+        else:
+            state[platform_dofs:] = -np.linalg.solve(interior, coupling)
+    new.u, new.v, new.acc = (np.ascontiguousarray(state[:, i]) for i in range(3))
+
+
+def time_step_warnings(settings: Settings, system: PlatformSystem, lowest_hz: float,
+                       max_steps: int) -> list[str]:
+    """Warnings, with numbers, where ``newmark.dt_s`` does not suit the model.
+
+    * Too fine: ``max_steps`` steps cover less than ``TYPICAL_INTERVAL_S`` of input, so wrenches
+      further apart are integrated only in part; the highest natural frequency f_max of the
+      model says what is needed (``STEPS_PER_PERIOD`` steps per period: dt = 1/(20 f_max)).
+    * Too coarse: the average-acceleration scheme lengthens the period of a mode by
+      (w dt/2) / arctan(w dt/2); over 1 % for the lowest mode ``lowest_hz`` is reported.
+    """
+    from cdpr_dynamics.dynamics import _largest_eigenvalue
+    dt = settings.dt_s
+    warnings = []
+    if dt * max_steps < TYPICAL_INTERVAL_S:
+        try:
+            k, m = system.matrices(dense=system.dofs <= DENSE_NEWMARK_DOFS)
+            f_max = np.sqrt(max(_largest_eigenvalue(k, m), 0.0)) / (2 * np.pi)
+            need = f' (its highest mode, {f_max:.4g} Hz, needs only dt = ' \
+                   f'{1 / (STEPS_PER_PERIOD * f_max):.3g} s)' if f_max > 0 else ''
+        except (DynamicsError, ValueError, np.linalg.LinAlgError):
+            need = ''
+        warnings.append(f'newmark.dt_s = {dt:g} s: node.max_steps_per_wrench = {max_steps} '
+                        f'steps cover only {dt * max_steps * 1e3:.3g} ms of input, wrenches '
+                        f'further apart are integrated in part{need}')
+    if np.isfinite(lowest_hz) and lowest_hz > 0:
+        half = np.pi * lowest_hz * dt
+        elongation = half / np.arctan(half) - 1.0
+        if elongation > 0.01:
+            warnings.append(f'newmark.dt_s = {dt:g} s takes {1 / (lowest_hz * dt):.3g} steps per '
+                            f'period of the lowest mode ({lowest_hz:.4g} Hz): its period comes '
+                            f'out {100 * elongation:.2g} % long')
+    return warnings
+
+
+def _tangent_structure(eq: Equilibrium) -> np.ndarray:
+    """W^T of the forces along each cable's end direction at ``eq`` (the chord for chord
+    statics, the catenary's end tangent for sagged cables): wrench per unit tension."""
+    unit = eq.end_force_n / np.linalg.norm(eq.end_force_n, axis=1)[:, None]
+    return structure_of(unit, eq.geometry.lever_m, eq.geometry.structure_matrix.shape[0])

@@ -11,59 +11,82 @@ The node only wires ROS to :class:`cdpr_dynamics.live.LivePredictor` (the same c
 ``cdpr_replay``) and to :func:`cdpr_dynamics.analysis.frf_arrays`; every message conversion and
 content check is in ``msg_adapters``. A bad input is rejected with a reason (diagnostics and a
 throttled log line) and the node carries on with its last good state.
+
+Hardening (issue 14): stamps never latch the node (:mod:`msg_adapters.stamps`, timed against
+this node's clock); each wrench costs at most ``node.max_steps_per_wrench`` Newmark steps; the
+service refuses oversized requests before any work and queues ``node.frf_queue_depth`` calls;
+the limits are read-only; a ``set_parameters`` request applies all or none; user strings are
+echoed cut; SIGINT/SIGTERM end the process with status 0 within ``STOP_DEADLINE_S``
+(:class:`Stopper`).
 """
 from __future__ import annotations
 
 import collections
+import os
+import signal
+import socket
 import sys
+import threading
 import time
 
 import numpy as np
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped, WrenchStamped
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rcl_interfaces.srv import GetParameters
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
+                              ParameterNotDeclaredException)
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data,
-                       qos_profile_services_default)
+from rclpy.signals import SignalHandlerOptions
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data, qos_profile_services_default)
 from sensor_msgs.msg import JointState
 
 from cdpr_dynamics.analysis import (AnalysisError, build_system, damping_for, damping_warnings,
-                                    frf_arrays, safe)
-from cdpr_dynamics.config import (NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS, ConfigError,
-                                  Param, node_options, settings_from_params)
+                                    equilibrium_summary, frf_arrays, safe)
+from cdpr_dynamics.config import (NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS,
+                                  ROS_NODE_PARAMETERS, ConfigError, Param, check_names,
+                                  check_params, check_problem_size, check_value,
+                                  default_config_path, node_options, read_params_file,
+                                  settings_from_params)
 from cdpr_dynamics.dynamics import natural_frequencies
-from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.live import LivePredictor, time_step_warnings
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import displacement_message
-from msg_adapters.frf_service import ARRAYS, pack_response, parse_request, settings_changes
+from msg_adapters.frf_service import (ARRAYS, pack_response, parse_request, response_size_error,
+                                      settings_changes)
 from msg_adapters.joint_state import tensions_message
 from msg_adapters.inputs import NUMERIC_ERRORS, InputHandler, first_line
-from msg_adapters.validation import InvalidMessage, s_to_stamp
+from msg_adapters.stamps import StampPolicy
+from msg_adapters.validation import InvalidMessage, clip, ns_to_stamp, s_to_stamp, stamp_to_ns
 
 NODE_NAME = 'cdpr_dynamics'
 
 #: Fixed for the life of the node: the robot itself and what is set up once.
 READ_ONLY = {'robot.frame_id', 'robot.anchors', 'robot.attachments', 'robot.initial_position',
              'robot.initial_orientation', 'node.diagnostics_period_s',
-             'node.wrench_queue_depth', 'node.service_introspection'}
+             'node.wrench_queue_depth', 'node.service_introspection',
+             # limits protect the node: a client must not raise them at runtime
+             'node.frf_max_points', 'node.frf_max_values', 'node.frf_queue_depth',
+             'node.frf_cache_size', 'node.max_steps_per_wrench'}
 LOG_PERIOD_S = 1.0
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
+STOP_DEADLINE_S = 0.8     # after SIGINT/SIGTERM the process ends within this, cleanly or not
 
 
 def _descriptor(param: Param) -> ParameterDescriptor:
-    default = param.default
-    if isinstance(default, str):
+    value_type = param.value_type
+    if value_type is str:
         kind = ParameterType.PARAMETER_STRING
-    elif isinstance(default, list):
+    elif value_type is list:
         kind = ParameterType.PARAMETER_DOUBLE_ARRAY
-    elif isinstance(default, int):
+    elif value_type is int:
         kind = ParameterType.PARAMETER_INTEGER
     else:
         kind = ParameterType.PARAMETER_DOUBLE
@@ -100,6 +123,8 @@ class InputHealth:
         self._logged: dict[str, float] = {}
         self._suppressed = collections.Counter()
         self._children = {}
+        self.notes = collections.Counter()
+        self.last_note = ''
 
     def accept(self) -> bool:
         """Count a good input; True when the level changed."""
@@ -133,6 +158,23 @@ class InputHealth:
             self._suppressed[kind] += 1
         return news
 
+    def warn(self, kind: str, text: str) -> bool:
+        """An accepted input that is worth a warning (a clock jump, a skipped interval): log it
+        (throttled as rejections are), count it and raise this report to WARN; True (news)."""
+        self.notes[kind] += 1
+        self.last_note = text
+        if self.worst < diag.WARN:
+            self.worst, self.worst_reason = diag.WARN, text
+        now = time.monotonic()
+        key = 'note_' + kind
+        if now - self._logged.get(key, -np.inf) >= LOG_PERIOD_S:
+            more = self._suppressed.pop(key, 0)
+            self.logger.warning(text + (f' ({more} more since the last log)' if more else ''))
+            self._logged[key] = now
+        else:
+            self._suppressed[key] += 1
+        return True
+
     def report(self):
         """(level, reason) for this report: the worst since the last one; then reset."""
         level, reason = max(self.level, self.worst), self.worst_reason or (
@@ -145,6 +187,9 @@ class InputHealth:
         values = {'accepted': self.accepted, 'rejected': sum(self.rejected.values())}
         values.update({f'rejected_{k}': v for k, v in sorted(self.rejected.items())})
         values['last_rejection'] = self.last_reason or 'none'
+        if self.notes:
+            values['warnings'] = sum(self.notes.values())
+            values['last_warning'] = self.last_note
         if age is not None:
             values['last_rejection_age_s'] = round(age, 3)
         return values
@@ -163,8 +208,11 @@ class DynamicsNode(Node):
                                        self._flat['node.angle_tolerance_rad'])
         self.revision = 0                      # bumps whenever the model state changes
         self._rebuilds = 0
+        self.predictor.max_steps_per_wrench = self._flat['node.max_steps_per_wrench']
         self.inputs = InputHandler(self.predictor, self.frame_id,
-                                   self._flat['node.quaternion_tolerance'])
+                                   self._flat['node.quaternion_tolerance'],
+                                   StampPolicy.from_options(self._flat))
+        self._step_warnings: list[str] = []
         self._pose_stamp = None
         self._rebuild_s = collections.deque(maxlen=512)
         self._compute_s = collections.deque(maxlen=4096)   # check + integrate + message
@@ -195,10 +243,18 @@ class DynamicsNode(Node):
                                                  qos_profile_sensor_data)
         self.wrench_sub = self.create_subscription(WrenchStamped, 'wrench', self.on_wrench,
                                                    sensor)
+        # calls wait in a queue of node.frf_queue_depth (rclpy's default holds 10 and DDS drops
+        # the oldest beyond it without a word): each waiting call is answered in turn
+        service_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
+                                 depth=self._flat['node.frf_queue_depth'],
+                                 reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.VOLATILE)
         self.frf_service = self.create_service(GetParameters, 'frequency_response',
-                                               self.on_frequency_response)
+                                               self.on_frequency_response,
+                                               qos_profile=service_qos)
         self._configure_introspection(self._flat['node.service_introspection'])
         self.add_on_set_parameters_callback(self.on_set_parameters)
+        self._make_set_parameters_atomic()
 
         self._diag_dirty = True
         self._diag_last = -np.inf
@@ -206,41 +262,52 @@ class DynamicsNode(Node):
         self._publish_tensions(self.get_clock().now().to_msg())
         update = self.predictor.last_update
         logger.info(f'{update.method} model, {update.dofs} DOFs at '
-                    f'{np.round(self.predictor.position_m, 4).tolist()} m in {self.frame_id!r}; '
-                    f'waiting for pose and wrench')
+                    f'{np.round(self.predictor.position_m, 4).tolist()} m in '
+                    f'{clip(repr(self.frame_id))}; waiting for pose and wrench')
+        self._log_model_warnings()
 
     # ---------------------------------------------------------------------- parameters
 
     def _declare_parameters(self) -> dict:
+        """Declare the table's parameters; their values (flat, dotted) as the tools read them.
+
+        Strict as the tools (SPEC section 3): a name given to this node (params file or
+        ``-p``; rclpy keeps them in ``_parameter_overrides``) that is not in the table is a
+        :class:`ConfigError` naming the closest one; parameters without a default are
+        declared by type only and left out of the result when not given, so
+        :func:`settings_from_params` names the missing one."""
+        check_names(getattr(self, '_parameter_overrides', {}))
+        type_only = {float: Parameter.Type.DOUBLE, int: Parameter.Type.INTEGER,
+                     str: Parameter.Type.STRING, list: Parameter.Type.DOUBLE_ARRAY}
         flat = {}
         for param in PARAMETERS + NODE_PARAMETERS:
             descriptor = _descriptor(param)
             default = param.default
-            if isinstance(default, list) and not default:
-                default = Parameter.Type.DOUBLE_ARRAY   # no default: must come from the file
+            if default is None or (isinstance(default, list) and not default):
+                default = type_only[param.value_type]   # no default: must come from the file
             try:
                 value = self.declare_parameter(param.name, default, descriptor).value
-            except InvalidParameterTypeException as exc:
+            except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
                 value = self._declare_widened(param, descriptor, exc)
-            except InvalidParameterValueException as exc:
-                raise ConfigError(f'parameter {param.name}: {first_line(exc)}') from None
-            flat[param.name] = param.default if value is None else _plain(value)
+            if value is not None:
+                flat[param.name] = _plain(value)
+            elif param.default is not None:
+                flat[param.name] = param.default
         return flat
 
     def _declare_widened(self, param: Param, descriptor, exc):
-        """Take an integer (array) from the file for a double (array): 30 for 30.0, as the
-        offline tools do; any other type mismatch is a configuration error."""
+        """A value ROS refuses (another type: 30 for 30.0, '2.01e10'; out of range) converted
+        and checked as the offline tools do (:func:`check_value`): declared with the converted
+        value, or the tools' one-line reason; never rclpy's multi-line text."""
         override = getattr(self, '_parameter_overrides', {}).get(param.name)
-        widen = {(ParameterType.PARAMETER_DOUBLE, Parameter.Type.INTEGER): float,
-                 (ParameterType.PARAMETER_DOUBLE_ARRAY, Parameter.Type.INTEGER_ARRAY):
-                 lambda v: [float(x) for x in v]}
-        convert = override is not None and widen.get((descriptor.type, override.type_))
-        if not convert:
+        if override is None:
             raise ConfigError(f'parameter {param.name}: {first_line(exc)}') from None
+        value = check_value(param.name, _plain(override.value))
+        value = value.tolist() if isinstance(value, np.ndarray) else value
         try:
-            return self.declare_parameter(param.name, convert(override.value), descriptor,
+            return self.declare_parameter(param.name, value, descriptor,
                                           ignore_override=True).value
-        except InvalidParameterValueException as err:
+        except (InvalidParameterTypeException, InvalidParameterValueException) as err:
             raise ConfigError(f'parameter {param.name}: {first_line(err)}') from None
 
     def on_set_parameters(self, params) -> SetParametersResult:
@@ -272,15 +339,34 @@ class DynamicsNode(Node):
         self.predictor.pose_tolerance_m = flat['node.pose_tolerance_m']
         self.predictor.angle_tolerance_rad = flat['node.angle_tolerance_rad']
         self.inputs.quaternion_tolerance = flat['node.quaternion_tolerance']
+        self.inputs.policy = StampPolicy.from_options(flat)
         if analysis_changed:
             self._rebuilt(update)
             self._update_modal()
             self._publish_tensions(self._pose_stamp or self.get_clock().now().to_msg())
             self.get_logger().info(
-                'parameters ' + ', '.join(f'{p.name}={_plain(p.value)}' for p in params)
+                'parameters ' + ', '.join(f'{p.name}={clip(_plain(p.value))}' for p in params)
                 + f': {update.method} model, {update.dofs} DOFs')
         self._diag_dirty = True
         return SetParametersResult(successful=True)
+
+    def _make_set_parameters_atomic(self) -> None:
+        """Serve ``set_parameters`` all or none: rclpy applies the parameters of one request
+        one by one (a 20-parameter request with one bad value applied 19, with 19 rebuilds);
+        here the request goes through :meth:`on_set_parameters` once, every result is that
+        one's (same reason), and the model is rebuilt at most once."""
+        for service in self.services:
+            if service.srv_name.endswith('/set_parameters'):
+                service.callback = self._on_set_parameters_service
+
+    def _on_set_parameters_service(self, request, response):
+        params = [Parameter.from_parameter_msg(p) for p in request.parameters]
+        try:
+            result = self.set_parameters_atomically(params)
+        except ParameterNotDeclaredException as exc:
+            result = SetParametersResult(successful=False, reason=clip(str(exc), 500))
+        response.results = [result] * len(params)
+        return response
 
     def _configure_introspection(self, mode: str) -> None:
         try:
@@ -298,16 +384,18 @@ class DynamicsNode(Node):
     def on_pose(self, msg: PoseStamped) -> None:
         """Move the model to the pose; rebuild only when it moved more than the tolerance."""
         try:
-            update = self.inputs.pose(msg)
+            update = self.inputs.pose(msg, self.get_clock().now().nanoseconds)
         except InvalidMessage as exc:
             self._reject(self.pose_health, exc.kind, str(exc))
             return
-        self._pose_stamp = msg.header.stamp
+        self._pose_stamp = ns_to_stamp(self.inputs.last_pose_ns)
         if self.pose_health.accept():
             self._diag_dirty = True
+        if self.inputs.notice:
+            self._diag_dirty = self.pose_health.warn('clock', self.inputs.notice)
         if update.rebuilt:
             self._rebuilt(update)
-        self._publish_tensions(msg.header.stamp)
+        self._publish_tensions(self._pose_stamp)
 
     def on_wrench(self, msg: WrenchStamped) -> None:
         """Handle the wrench, then those already waiting (bounded): one executor round trip
@@ -323,15 +411,19 @@ class DynamicsNode(Node):
         """Advance the integrator to the wrench's stamp and publish the prediction."""
         start = time.perf_counter()
         try:
-            u = self.inputs.wrench(msg)
+            u = self.inputs.wrench(msg, self.get_clock().now().nanoseconds)
         except InvalidMessage as exc:
             self._reject(self.wrench_health, exc.kind, str(exc))
             return
-        prediction = displacement_message(u, self.frame_id, msg.header.stamp)
+        stamp = msg.header.stamp if self.inputs.last_wrench_ns == stamp_to_ns(msg.header.stamp) \
+            else ns_to_stamp(self.inputs.last_wrench_ns)     # an unstamped one: its arrival
+        prediction = displacement_message(u, self.frame_id, stamp)
         computed = time.perf_counter()
         self.displacement_pub.publish(prediction)
         if self.wrench_health.accept():
             self._diag_dirty = True
+        if self.inputs.notice:
+            self._diag_dirty = self.wrench_health.warn('time', self.inputs.notice)
         now = time.perf_counter()
         self._compute_s.append(computed - start)
         self._publish_s.append(now - computed)
@@ -347,6 +439,24 @@ class DynamicsNode(Node):
         self._frf_cache.clear()
         self._rebuild_s.append(sum(update.timings_s.values()))
         self._diag_dirty = True
+        self._log_model_warnings()
+
+    def _log_model_warnings(self) -> None:
+        """Log the model's warnings (sag, accuracy, slack, heavy damping, fallback, time step)
+        besides /diagnostics: all of them at start and whenever their set changes, and once
+        when the last one clears. A warning's kind is its text before the first ':', so a
+        number that moves with the pose does not repeat it."""
+        warnings = list(self.predictor.last_update.warnings) + list(self._modal_warnings)
+        kinds = frozenset(w.split(':', 1)[0] for w in warnings)
+        before = getattr(self, '_logged_warning_kinds', frozenset())
+        if kinds == before and hasattr(self, '_logged_warning_kinds'):
+            return
+        self._logged_warning_kinds = kinds
+        logger = self.get_logger()
+        for warning in warnings:
+            logger.warning(f'model: {warning}')
+        if not warnings and before:
+            logger.info(f'model: no warnings any more ({", ".join(sorted(before))} cleared)')
 
     def _publish_tensions(self, stamp) -> None:
         eq = self.predictor.eq
@@ -365,15 +475,22 @@ class DynamicsNode(Node):
         """Lowest natural frequencies and damping warnings: on start and on settings changes."""
         try:
             freqs = safe(natural_frequencies, self.predictor.system, 12)
+            positive = np.asarray(freqs)[np.asarray(freqs) > 0]
+            self._step_warnings = time_step_warnings(
+                self.predictor.settings, self.predictor.system,
+                float(positive[0]) if positive.size else float('nan'),
+                self.predictor.max_steps_per_wrench)
             self._set_modal(freqs)
         except NUMERIC_ERRORS as exc:
             self._modal_warnings = [f'natural frequencies failed: {first_line(exc)}']
+        if hasattr(self, '_logged_warning_kinds'):   # after start: damping, time step changed
+            self._log_model_warnings()
 
     def _set_modal(self, freqs) -> None:
         freqs = np.asarray(freqs)
         self._lowest_hz = float(freqs[0]) if freqs.size else float('nan')
         damping = damping_for(self.predictor.settings, self.predictor.system)
-        self._modal_warnings = damping_warnings(damping, freqs[freqs > 0])
+        self._modal_warnings = damping_warnings(damping, freqs[freqs > 0]) + self._step_warnings
 
     # ------------------------------------------------------------------------- service
 
@@ -383,6 +500,8 @@ class DynamicsNode(Node):
         parsed = parse_request(request.names)
         self._frf['calls'] += 1
         arrays, error = None, parsed.error
+        if not error:      # refuse what is too large before any work (node.frf_max_*)
+            error = self._frf_limits(parsed)
         if not error and any(name in ARRAYS for name in parsed.names):
             key = (self.revision, parsed.key())
             if key in self._frf_cache:
@@ -408,13 +527,28 @@ class DynamicsNode(Node):
         self._diag_dirty = True
         return pack_response(parsed.names, arrays, error, response)
 
+    def _frf_limits(self, parsed) -> str:
+        """Why a request is refused before any work ('' if it is not): more points than
+        ``node.frf_max_points``, a reply over ``node.frf_max_values``, a model over the
+        problem-size limit (:func:`cdpr_dynamics.config.check_problem_size`)."""
+        settings = self.predictor.settings
+        n_points = parsed.overrides.get('n_points', settings.n_points)
+        if n_points > self._flat['node.frf_max_points']:
+            return (f'n_points={n_points} exceeds node.frf_max_points = '
+                    f'{self._flat["node.frf_max_points"]}')
+        error = response_size_error(parsed.names, n_points, self._flat['node.frf_max_values'])
+        if not error and ('method' in parsed.overrides
+                          or 'elements_per_cable' in parsed.overrides):
+            try:
+                check_problem_size(settings, parsed.overrides.get('method'),
+                                   parsed.overrides.get('elements_per_cable'))
+            except ConfigError as exc:
+                error = f'frequency response refused: {first_line(exc)}'
+        return error
+
     def _compute_frf(self, overrides: dict) -> dict:
         settings = self.predictor.settings
         changes = settings_changes(overrides, settings.frf_force_n)
-        n_points = changes.get('n_points', settings.n_points)
-        if n_points > self._flat['node.frf_max_points']:
-            raise ConfigError(f'n_points={n_points} exceeds node.frf_max_points = '
-                              f'{self._flat["node.frf_max_points"]}')
         if changes:
             settings = settings.replace(**changes)
         if 'method' in changes or 'elements_per_cable' in changes:
@@ -470,6 +604,7 @@ class DynamicsNode(Node):
             'tension_max_n': float(p.eq.tensions.tension_n.max()),
             'lowest_natural_frequency_hz': self._lowest_hz,
             'sag_parameter': np.round(update.sag_parameter, 4).tolist(),
+            **_equilibrium_values(p.settings, p.eq),
             'rebuilds': self._rebuilds,
         }
         for stage, seconds in update.timings_s.items():
@@ -496,6 +631,19 @@ class DynamicsNode(Node):
         return values
 
 
+def _equilibrium_values(settings, eq) -> dict:
+    """Diagnostics of the static state: statics kind, residual, iterations, per-cable end force
+    (N, 3 values per cable) and unstretched length (m)."""
+    summary = equilibrium_summary(settings, eq)
+    return {'statics': summary['statics'],
+            'equilibrium_residual_n': summary['residual_n'],
+            'equilibrium_residual_nm': summary['residual_nm'],
+            'equilibrium_relative_residual': summary['relative_residual'],
+            'statics_iterations': summary['iterations'],
+            'end_force_n': np.round(eq.end_force_n, 4).ravel().tolist(),
+            'unstretched_length_m': np.round(eq.unstretched_length_m, 6).tolist()}
+
+
 def _take(subscription):
     """The next message waiting on ``subscription``, or None (rclpy's executor does the same
     through the same handle); any failure just ends the batch."""
@@ -514,28 +662,204 @@ def _plain(value):
     return list(value) if isinstance(value, (list, tuple)) else value
 
 
+USAGE = """\
+usage: dynamics_node [-h] --ros-args --params-file ROBOT.yaml [-p NAME:=VALUE ...]
+                     [-r pose:=TOPIC] [-r wrench:=TOPIC] [-r __ns:=/NAMESPACE]
+
+Live vibration prediction of a cable-driven parallel robot: ROS 2 node 'cdpr_dynamics'
+(subscribes pose and wrench; publishes predicted_displacement, cable_tensions and
+/diagnostics; serves frequency_response).
+
+  ros2 run cdpr_dynamics dynamics_node --ros-args --params-file {config}
+
+The params file describes the robot (anchors, mass, cables, tension limits: no defaults) and
+may set the numerical settings (model, damping, frf, newmark, node: documented defaults). Key
+its section '/**:' (any namespace) or 'cdpr_dynamics:'. A name not in the parameter table is
+an error. The table (names, units, defaults, ranges) is in README.md, section Configuration,
+and in cdpr_dynamics/config.py (PARAMETERS); on a running node: ros2 param describe
+/cdpr_dynamics NAME. Ctrl-C or SIGTERM stops it; a bad configuration exits 1 with one line.
+"""
+
+
+def _ros_override(rule: str) -> str:
+    """A ``-p NAME:=VALUE`` rule checked as the tools check a config (name, value) and written
+    with the parameter's ROS type (``frf.n_points:=400.0`` -> ``400``, ``robot.mass_kg:=40`` ->
+    ``40.0``): rcl silently drops some overrides whose type differs from the params file's."""
+    name, sep, text = rule.partition(':=')
+    if not sep or name in ROS_NODE_PARAMETERS or name.startswith('qos_overrides.'):
+        return rule                      # rcl's own rules (and its one-line error)
+    check_names([name])
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        raise ConfigError(f'-p {rule[:80]}: the value is not YAML') from None
+    value = check_value(name, value)
+    if isinstance(value, np.ndarray):
+        return f'{name}:=[{", ".join(repr(float(x)) for x in value)}]'
+    if isinstance(value, float):
+        return f'{name}:={value!r}'
+    return rule if isinstance(value, str) else f'{name}:={value}'
+
+
+def _check_command_line(argv) -> tuple[bool, list]:
+    """(help asked, the arguments for rclpy). For ``-h``/``--help``: (True, argv). Otherwise
+    every ``--params-file`` is read strictly, as the tools read a config (size, UTF-8,
+    aliases, depth, duplicates, the node key for this node's name and namespace, names and
+    values), and every ``-p`` rule checked and typed (:func:`_ros_override`), so a bad
+    configuration gets the tools' one line before rcl parses it (:class:`ConfigError`).
+    Arguments outside ``--ros-args`` are refused."""
+    user, files, name, namespace, ros = [], [], NODE_NAME, '/', False
+    out = list(argv[:1])
+    args = iter(argv[1:])
+    for arg in args:
+        out.append(arg)
+        if arg == '--ros-args':
+            ros = True
+        elif not ros or arg == '--':
+            ros = False
+            if arg != '--':
+                user.append(arg)
+        elif arg == '--params-file':
+            files.append(next(args, None))
+            out.append(files[-1])
+        elif arg in ('-p', '--param'):
+            rule = next(args, None)
+            out.append(rule if rule is None else _ros_override(rule))
+        elif arg in ('-r', '--remap'):
+            out.append(next(args, ''))
+            target, _, value = out[-1].partition(':=')
+            node, _, key = target.rpartition(':')
+            if node in ('', NODE_NAME) and key == '__ns':
+                namespace = value
+            elif node in ('', NODE_NAME) and key in ('__node', '__name'):
+                name = value
+        elif arg in ('-e', '--enclave', '--log-level', '--log-file-name', '--log-config-file'):
+            out.append(next(args, None))
+    if '-h' in user or '--help' in user:
+        return True, list(argv)
+    if user:
+        raise ConfigError(f'unknown argument {user[0][:60]!r} (see dynamics_node --help)')
+    for path in files:
+        if path is None:
+            raise ConfigError('--params-file needs a file name')
+        check_params(read_params_file(path, name, namespace))
+    return False, [a for a in out if a is not None]
+
+
 def main(args=None):
     """Run the node until Ctrl-C or SIGTERM; a bad configuration exits 1 with one line."""
     try:
-        rclpy.init(args=args)
+        help_asked, args = _check_command_line(sys.argv if args is None else args)
+        if help_asked:
+            try:
+                config = default_config_path()
+            except ConfigError:
+                config = 'config/paper_cdpr.yaml'
+            print(USAGE.format(config=config), end='')
+            return 0
+    except ConfigError as exc:
+        print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
+        return 1
+    try:   # rclpy's own signal handlers would shut the context down under a running callback
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # e.g. a parameter file rcl cannot parse
         print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
         return 1
+    stopper = Stopper()
     node = None
     status = 0
     try:
         node = DynamicsNode()
         rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except (Stopped, KeyboardInterrupt, ExternalShutdownException):
         pass
     except NUMERIC_ERRORS as exc:
         print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
         status = 1
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        stopper.stopping(status)
+        try:
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
+        except Exception:  # noqa: BLE001 - stopping anyway; a half-torn callback may object
+            pass
+        stopper.done()
+    if stopper.signalled:
+        # stopped by a signal: nothing is left to do, and the interpreter's own finalisation
+        # (seconds under load, with the default signal dispositions back) is skipped
+        stopper.exit(status)
     return status
+
+
+
+class Stopped(BaseException):
+    """Raised in the main thread by the first SIGINT or SIGTERM: it unwinds whatever runs (a
+    burst of wrenches, a long frequency_response call) straight to :func:`main`. A
+    BaseException, so the callbacks' ``except Exception`` guards let it through."""
+
+
+class Stopper:
+    """Clean shutdown on SIGINT and SIGTERM, at any moment, within ``STOP_DEADLINE_S``.
+
+    The first signal raises :class:`Stopped` in the main thread (Python runs signal handlers
+    there, between bytecodes); later ones are ignored (``ros2 launch`` sends two SIGINTs
+    close together). A watchdog thread, woken by :func:`signal.set_wakeup_fd` the moment a
+    signal arrives (even while the main thread is inside a long C call), ends the process
+    with status 0 if the orderly shutdown has not finished by the deadline.
+    """
+
+    def __init__(self):
+        self._signal = None
+        self._finished = threading.Event()
+        self._read, self._write = socket.socketpair()
+        self._write.setblocking(False)
+        signal.set_wakeup_fd(self._write.fileno(), warn_on_full_buffer=False)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+        threading.Thread(target=self._watchdog, name='stop_watchdog', daemon=True).start()
+
+    def _on_signal(self, signum, frame):
+        if self._signal is None:
+            self._signal = signum
+            raise Stopped(signum)
+
+    @property
+    def signalled(self) -> bool:
+        return bool(self._signal)
+
+    def stopping(self, status: int = 0) -> None:
+        """The shutdown is under way: every later signal is ignored, and the watchdog ends the
+        process with ``status`` if the shutdown takes longer than ``STOP_DEADLINE_S``."""
+        self._status = status
+        if self._signal is None:
+            self._signal = 0
+        try:
+            self._write.send(b'\0')       # arm the watchdog (a signal has armed it already)
+        except OSError:
+            pass
+
+    def done(self) -> None:
+        self._finished.set()
+
+    def exit(self, status: int) -> None:
+        """End the process now with ``status`` (streams flushed)."""
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001
+                pass
+        os._exit(status)
+
+    _status = 0
+
+    def _watchdog(self):
+        try:
+            self._read.recv(1)
+        except OSError:
+            return
+        if not self._finished.wait(STOP_DEADLINE_S):
+            self.exit(self._status)
 
 
 if __name__ == '__main__':

@@ -86,23 +86,35 @@ def apply_env(env: dict) -> None:
         os.environ.pop(name, None)
 
 
-def node_command() -> list[str]:
-    """How to start ``dynamics_node``: the console script beside this Python, the one of an
-    ament install (``lib/cdpr_dynamics``), or ``python -m cdpr_dynamics.node``."""
-    candidates = [Path(sys.executable).parent / 'dynamics_node']
+def console_script(name: str) -> Path | None:
+    """The installed console script ``name`` of this package, or None.
+
+    Looked up as ``ros2 run`` does, in ``<prefix>/lib/cdpr_dynamics`` of the package's ament
+    prefix (a colcon workspace, /opt/ros), then beside this Python (a venv's ``bin``), then
+    on PATH.
+    """
+    candidates = []
     try:
         from ament_index_python.packages import get_package_prefix
         candidates.append(Path(get_package_prefix('cdpr_dynamics')) / 'lib' / 'cdpr_dynamics'
-                          / 'dynamics_node')
+                          / name)
     except Exception:  # no ament index for the package: fall through
         pass
-    found = shutil.which('dynamics_node')
+    candidates.append(Path(sys.executable).parent / name)
+    found = shutil.which(name)
     if found:
         candidates.append(Path(found))
     for path in candidates:
         if path.is_file() and os.access(path, os.X_OK):
-            return [str(path)]
-    return [sys.executable, '-m', 'cdpr_dynamics.node']
+            return path
+    return None
+
+
+def node_command() -> list[str]:
+    """How to start ``dynamics_node``: its console script (:func:`console_script`), or
+    ``python -m cdpr_dynamics.node``."""
+    path = console_script('dynamics_node')
+    return [str(path)] if path else [sys.executable, '-m', 'cdpr_dynamics.node']
 
 
 def start_node(params_file, env: dict, parameters: dict | None = None, stdout=None,

@@ -17,7 +17,7 @@ MCAP file gets the inputs (their CDR bytes unchanged) plus what the node would h
 
 The outputs sit beside their inputs (``/ns/wrench`` -> ``/ns/predicted_displacement``), with log
 and publish time those of the input that caused them. The file has the recorder's schemas and
-channel metadata (:class:`cdpr_dynamics.recording.RecordingWriter`), a ``cdpr_replay``
+channel metadata (:class:`cdpr_dynamics.recording.writer.RecordingWriter`), a ``cdpr_replay``
 metadata record (input, topics, order, method, parameters) and appears under its name only when
 complete.
 
@@ -44,8 +44,9 @@ import numpy as np
 from cdpr_dynamics.config import (NODE_PARAMETER_BY_NAME, Settings, node_options,
                                   read_params_file, settings_from_params)
 from cdpr_dynamics.live import LivePredictor
-from cdpr_dynamics.recording import (RecordingError, RecordingWriter, read_messages,
-                                     recording_info)
+from cdpr_dynamics.recording.base import RecordingError
+from cdpr_dynamics.recording.reader import read_messages, recording_info
+from cdpr_dynamics.recording.writer import RecordingWriter
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import displacement_message, read_displacement
 from msg_adapters.joint_state import read_tensions, tensions_message
@@ -181,9 +182,9 @@ def inspect_input(input_path, pose_topic: str | None = None, wrench_topic: str |
     return info, pose, wrench, total
 
 
-def _input_stream(path, pose, wrench, order: str, allow_incomplete: bool):
+def _input_stream(path, pose, wrench, order: str, allow_incomplete: bool, on_bad=None):
     messages = read_messages(path, {pose: POSE_TYPE, wrench: WRENCH_TYPE}, raw=True,
-                             allow_incomplete=allow_incomplete)
+                             allow_incomplete=allow_incomplete, on_bad=on_bad)
     if order == 'stamp':   # header stamps, then log time (stable)
         return iter(sorted(messages, key=lambda m: (
             stamp_to_ns(m.message.header.stamp), m.log_time_ns)))
@@ -222,6 +223,8 @@ class ReplaySummary:
     wrenches_accepted: int = 0
     rebuilds: int = 0
     rejected: Counter = field(default_factory=Counter)  # 'pose:kind' / 'wrench:kind' -> count
+    skipped: int = 0            # input messages that did not decode (skip_bad)
+    first_skipped: str = ''     # the first one's error
     messages_written: int = 0
     bytes: int = 0
     elapsed_s: float = 0.0
@@ -241,16 +244,18 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
                    elements_per_cable: int | None = None, options: NodeOptions | None = None,
                    force: bool = False, pose_topic: str | None = None,
                    wrench_topic: str | None = None, order: str = 'log',
-                   allow_incomplete: bool = False, parameters: dict | None = None
-                   ) -> ReplaySummary:
+                   allow_incomplete: bool = False, parameters: dict | None = None,
+                   skip_bad: bool = False) -> ReplaySummary:
     """Replay the pose and wrench messages of ``input_path`` into a new file ``output_path``.
 
     ``settings`` (e.g. :func:`load_replay_config`), with ``method`` / ``elements_per_cable``
     overriding the configured model; ``options``: the node's input tolerances. ``progress``:
     called as ``progress(done, total)`` with input messages. ``order``: 'log' (receive time,
     as the node saw them) or 'stamp' (header stamps). ``parameters``: the flat parameters, kept
-    in the output's ``cdpr_replay`` metadata record. Raises :class:`ReplayError`,
-    :class:`~cdpr_dynamics.recording.RecordingError` (input or output file) or
+    in the output's ``cdpr_replay`` metadata record. ``skip_bad``: input messages whose bytes
+    do not decode are counted (``skipped``) and left out, instead of ending the replay with an
+    error naming the first. Raises :class:`ReplayError`,
+    :class:`~cdpr_dynamics.recording.base.RecordingError` (input or output file) or
     :class:`~cdpr_dynamics.config.ConfigError` / :class:`AnalysisError` (a model that cannot be
     built at the initial pose), all one line; nothing is left at ``output_path`` then.
     """
@@ -292,7 +297,13 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
             'node_options': json.dumps(options.__dict__, sort_keys=True),
             'parameters': json.dumps(parameters or {}, sort_keys=True, default=str)})
         done = 0
-        for item in _input_stream(input_path, pose, wrench, order, allow_incomplete):
+
+        def on_bad(error):
+            summary.skipped += 1
+            summary.first_skipped = summary.first_skipped or str(error)
+
+        for item in _input_stream(input_path, pose, wrench, order, allow_incomplete,
+                                  on_bad if skip_bad else None):
             writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
             msg = item.message
             t = item.log_time_ns
@@ -363,7 +374,7 @@ def replay_live(node, input_path, *, rate: float = 1.0, pose_topic: str | None =
     recorded CDR bytes, unchanged (header stamps as recorded), at the recorded log times
     relative to the first one, divided by ``rate``; first waits up to ``wait_s`` until each
     topic has ``subscribers`` subscriptions. ``stop`` (an Event) ends it early. Raises
-    :class:`ReplayError` / :class:`~cdpr_dynamics.recording.RecordingError`.
+    :class:`ReplayError` / :class:`~cdpr_dynamics.recording.base.RecordingError`.
     """
     from geometry_msgs.msg import PoseStamped, WrenchStamped
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -541,6 +552,9 @@ def summary_lines(summary: ReplaySummary) -> Iterable[str]:
     yield (f'{summary.poses} poses ({summary.poses_accepted} accepted, {summary.rebuilds} '
            f'rebuilds), {summary.wrenches} wrenches ({summary.wrenches_accepted} predictions); '
            f'rejected: {rejected}')
+    if summary.skipped:
+        yield (f'skipped {summary.skipped} undecodable input message(s); the first: '
+               f'{summary.first_skipped}')
     yield (f'{summary.method} model ({summary.dofs} DOFs), {summary.inputs} inputs in '
            f'{summary.elapsed_s:.2f} s ({summary.messages_per_s:.0f} messages/s)')
     yield (f'wrote {summary.messages_written} messages ({summary.bytes} bytes) to '

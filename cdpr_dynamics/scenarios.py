@@ -168,7 +168,7 @@ def scenario_messages(name: str, **kwargs) -> list[tuple[str, int, object]]:
 
 def write_scenario(name: str, path, force: bool = False, **kwargs):
     """Write the input recording of a scenario; the :class:`RecordingSummary`."""
-    from cdpr_dynamics.recording import RecordingWriter
+    from cdpr_dynamics.recording.writer import RecordingWriter
 
     messages = scenario_messages(name, **kwargs)
     with RecordingWriter(path, force=force) as writer:
@@ -217,7 +217,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     from cdpr_dynamics.config import ConfigError
-    from cdpr_dynamics.recording import RecordingError
+    from cdpr_dynamics.recording.base import RecordingError
     from cdpr_dynamics.replay import ReplayError
 
     folder = Path(args.output_dir or args.golden)

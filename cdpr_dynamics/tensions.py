@@ -309,10 +309,18 @@ def closest_tensions(structure_matrix, wrench, t_min_n, t_max_n, tolerance_n=1e-
     with a tiny eps (1e-12 of the Hessian's scale) that picks one answer when W^T is wide.
     Doubles as an exact feasibility test of Eqs. 11-12: the residual max |W^T T - w| is ~0
     (below ``tolerance_n``, N) exactly when Eq. 12 has a solution in the box.
+
+    Bounded in time for any finite wrench: a w farther than ``FAR_FACTOR`` times the extent
+    r = sum_i |g_i| (T_max - T_min)/2 of the reachable set from its centre c = W^T T_mid is
+    first pulled in along its direction, w' = c + (w - c) FAR_FACTOR r / |w - c| (such a wrench
+    is out of reach by orders of magnitude; the closest tensions then lie where the set reaches
+    furthest towards w, and without the pull a w of 1e100 N overflows the QP's gradient and ran
+    proxsuite for 20-30 s). The QP's outer and inner iterations are capped (1000 each).
     """
     wt = np.asarray(structure_matrix, dtype=float)
     w = np.asarray(wrench, dtype=float).reshape(-1)
     n = wt.shape[1]
+    w = _pull_in(wt, w, t_min_n, t_max_n)
     gram = wt.T @ wt
     eps = 1e-12 * max(1.0, np.abs(gram).max())
     mid = np.full(n, 0.5 * (t_min_n + t_max_n))
@@ -320,10 +328,28 @@ def closest_tensions(structure_matrix, wrench, t_min_n, t_max_n, tolerance_n=1e-
     qp.settings.eps_abs = 1e-3 * tolerance_n
     qp.settings.eps_rel = 0.0
     qp.settings.max_iter = 1000
+    qp.settings.max_iter_in = 1000
     qp.init(gram + eps * np.eye(n), -(wt.T @ w) - eps * mid, None, None, None, None, None,
             np.full(n, float(t_min_n)), np.full(n, float(t_max_n)))
     qp.solve()
     return np.clip(qp.results.x, t_min_n, t_max_n)
+
+
+#: a wrench farther than this many extents of the reachable set is pulled in (closest_tensions)
+FAR_FACTOR = 1e3
+
+
+def _pull_in(wt: np.ndarray, w: np.ndarray, t_min_n: float, t_max_n: float) -> np.ndarray:
+    """w, or w pulled in along its direction to FAR_FACTOR extents of the reachable set."""
+    centre = wt @ np.full(wt.shape[1], 0.5 * (t_min_n + t_max_n))
+    extent = max(float(np.linalg.norm(wt, axis=0).sum()) * 0.5 * abs(t_max_n - t_min_n),
+                 float(np.linalg.norm(centre)), 1.0)
+    away = w - centre
+    scale = float(np.abs(away).max(initial=0.0))
+    if not np.isfinite(scale) or scale <= FAR_FACTOR * extent / np.sqrt(w.size):
+        return w
+    direction = away / scale                    # two steps: |w - c| itself may overflow
+    return centre + direction * (FAR_FACTOR * extent / np.linalg.norm(direction))
 
 
 def solve_tensions(structure_matrix, wrench, t_min_n, t_max_n, weights=None,

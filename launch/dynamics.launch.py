@@ -6,8 +6,10 @@
 
 Arguments: ``params_file`` (default: the installed config/paper_cdpr.yaml), ``namespace``,
 ``pose_topic`` and ``wrench_topic`` (remappings of the node's ``pose`` and ``wrench``),
-``log_level``. With a namespace, the parameter file's node key must match the namespaced node
-(e.g. ``/**/cdpr_dynamics:`` instead of ``cdpr_dynamics:``).
+``log_level``. The shipped configs are keyed ``/**:``, so they apply in any ``namespace:=``;
+a file of your own keyed ``cdpr_dynamics:`` matches only the root namespace (key it ``/**:``,
+``/**/cdpr_dynamics:`` or ``/NAMESPACE/cdpr_dynamics:``); the node refuses a file with no
+section for it, listing the keys it found.
 """
 import os
 

@@ -5,7 +5,11 @@ sweep for this call (:data:`OVERRIDES`). Response ``values``: one ParameterValue
 is not an override, in request order: DOUBLE_ARRAY with the array, or STRING with the reason
 where the name is unknown or the computation failed.
 
-Server side: :func:`parse_request`, :func:`settings_changes`, :func:`pack_response`.
+Server side: :func:`parse_request`, :func:`response_size_error`, :func:`settings_changes`,
+:func:`pack_response`. Bounded replies: a name asked for again is answered once (later entries
+get a STRING saying which entry holds it), a request of more than :data:`MAX_NAMES` names or
+whose reply would exceed ``node.frf_max_values`` doubles (distinct arrays x points) is refused
+before any work, with the numbers; names echoed in reasons are cut to 80 characters.
 Client side: :func:`request_message`, :func:`unpack_response` and the blocking helper
 :func:`call_frequency_response`, which returns numpy arrays and raises with the reason.
 """
@@ -23,12 +27,17 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters
 
 from cdpr_dynamics.analysis import FRF_ARRAYS
+from msg_adapters.validation import clip
 
 SERVICE = 'frequency_response'
 ARRAYS = FRF_ARRAYS
 #: override key -> type of its value; force_* set one component of frf.force_n.
 OVERRIDES = {'method': str, 'elements_per_cable': int, 'f_min_hz': float, 'f_max_hz': float,
              'n_points': int, 'force_x_n': float, 'force_y_n': float, 'force_z_n': float}
+
+
+#: most names (arrays and overrides) one request may hold
+MAX_NAMES = 100
 
 
 class FrequencyResponseError(RuntimeError):
@@ -58,7 +67,7 @@ def _parse_value(key: str, text: str):
     try:
         value = float(text)
     except ValueError:
-        raise ValueError(f'override {key}={text!r} is not a number') from None
+        raise ValueError(f'override {key}={clip(repr(text))} is not a number') from None
     if not math.isfinite(value):
         raise ValueError(f'override {key}={text} is not finite')
     if kind is int:
@@ -77,7 +86,7 @@ def parse_request(names) -> FrfRequest:
             continue
         key, text = (part.strip() for part in entry.split('=', 1))
         if key not in OVERRIDES:
-            request.error = request.error or (f'unknown override {key!r}; known: '
+            request.error = request.error or (f'unknown override {clip(repr(key))}; known: '
                                               f'{", ".join(OVERRIDES)}')
             continue
         try:
@@ -85,6 +94,23 @@ def parse_request(names) -> FrfRequest:
         except ValueError as exc:
             request.error = request.error or str(exc)
     return request
+
+
+def response_size_error(names, n_points: int, max_values: int) -> str:
+    """Why the reply to ``names`` at ``n_points`` would be too large, or ''.
+
+    At most :data:`MAX_NAMES` names; distinct array names x ``n_points`` at most ``max_values``
+    (an upper bound: ``natural_frequencies_hz`` holds 12 values, not ``n_points``)."""
+    names = list(names)
+    if len(names) > MAX_NAMES:
+        return (f'request has {len(names)} names, more than the {MAX_NAMES} one call may ask '
+                f'for')
+    arrays = [n for n in dict.fromkeys(names) if n in ARRAYS]
+    values = len(arrays) * int(n_points)
+    if values > max_values:
+        return (f'reply too large: {len(arrays)} arrays x {n_points} points = {values} values, '
+                f'over node.frf_max_values = {max_values}; ask for fewer arrays or points')
+    return ''
 
 
 def settings_changes(overrides: dict, frf_force_n) -> dict:
@@ -113,13 +139,21 @@ def string_value(text: str) -> ParameterValue:
 
 def pack_response(names, arrays: dict | None, error: str = '',
                   response: GetParameters.Response | None = None) -> GetParameters.Response:
-    """One value per array name: the array, or a STRING with ``error`` or 'unknown ...'."""
+    """One value per array name: the array, or a STRING with ``error`` or 'unknown ...';
+    a name asked for again gets a STRING naming the entry that holds it (answered once)."""
     response = response or GetParameters.Response()
     values = []
-    for name in names:
+    first: dict[str, int] = {}
+    for index, name in enumerate(names):
+        if name in first:
+            values.append(string_value(f'duplicate of entry {first[name]} ({clip(name)}): '
+                                       f'answered once'))
+            continue
+        first[name] = index
         if name not in ARRAYS:
-            values.append(string_value(f'unknown array {name!r}; known: {", ".join(ARRAYS)}; '
-                                       f'overrides: {", ".join(k + "=..." for k in OVERRIDES)}'))
+            values.append(string_value(f'unknown array {clip(repr(name))}; known: '
+                                       f'{", ".join(ARRAYS)}; overrides: '
+                                       f'{", ".join(k + "=..." for k in OVERRIDES)}'))
         elif error or arrays is None:
             values.append(string_value(error or 'not computed'))
         else:
@@ -144,6 +178,8 @@ def unpack_response(request: GetParameters.Request, response: GetParameters.Resp
                                      f'values for {len(names)} names')
     arrays, reasons = {}, {}
     for name, value in zip(names, response.values):
+        if name in arrays or name in reasons:
+            continue                 # a name asked for again: answered at its first entry
         if value.type == ParameterType.PARAMETER_DOUBLE_ARRAY:
             arrays[name] = np.array(value.double_array_value, dtype=float)
         elif value.type == ParameterType.PARAMETER_STRING:

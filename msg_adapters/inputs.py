@@ -12,7 +12,8 @@ from cdpr_dynamics.config import ConfigError
 from cdpr_dynamics.dynamics import DynamicsError
 from cdpr_dynamics.live import LivePredictor, PoseUpdate
 from msg_adapters.pose import read_pose
-from msg_adapters.validation import InvalidMessage
+from msg_adapters.stamps import StampClock, StampPolicy
+from msg_adapters.validation import InvalidMessage, clip
 from msg_adapters.wrench import read_wrench
 
 #: Failures of the numerics on a state: the input is rejected, the last good state kept.
@@ -22,7 +23,7 @@ NUMERIC_ERRORS = (AnalysisError, ConfigError, DynamicsError, ValueError, np.lina
 def first_line(exc: BaseException) -> str:
     """The first line of an exception's message (its type name if it has none)."""
     text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
+    return clip(text.splitlines()[0], 2000) if text else type(exc).__name__
 
 
 class InputHandler:
@@ -31,45 +32,77 @@ class InputHandler:
     :meth:`pose` and :meth:`wrench` return the result, or raise
     :class:`~msg_adapters.validation.InvalidMessage` (``kind`` and one-line reason) where the
     input is rejected and the last good state kept: the adapters' checks (not finite, not a
-    unit quaternion, another frame, out of order), a pose the model cannot use (``state``:
-    outside the workspace, infeasible tensions, crossing cables), a wrench the cables cannot
-    hold (``infeasible``), and (``internal``) anything unexpected.
+    unit quaternion, another frame), the stamp policy (:mod:`msg_adapters.stamps`: unstamped,
+    ahead of the node's clock ``now_ns``, out of order), a pose the model cannot use
+    (``state``: outside the workspace, infeasible tensions, crossing cables), a wrench the
+    cables cannot hold (``infeasible``), and (``internal``) anything unexpected.
+
+    After an accepted input, :attr:`notice` holds a warning worth telling ('' if none): the
+    sender's clock jumped back (the stream restarted at the new stamp), or the integrator
+    skipped part of a long interval (``node.max_steps_per_wrench``). :attr:`last_wrench_ns`
+    is the time the last wrench was taken at (its arrival time for an unstamped one).
     """
 
-    def __init__(self, predictor: LivePredictor, frame_id: str, quaternion_tolerance: float):
+    def __init__(self, predictor: LivePredictor, frame_id: str, quaternion_tolerance: float,
+                 policy: StampPolicy = StampPolicy()):
         self.predictor = predictor
         self.frame_id = frame_id
         self.quaternion_tolerance = quaternion_tolerance
-        self.last_pose_ns: int | None = None
-        self.last_wrench_ns: int | None = None
+        self.pose_clock = StampClock('pose', policy)
+        self.wrench_clock = StampClock('wrench', policy)
+        self.notice = ''
 
-    def pose(self, msg) -> PoseUpdate:
+    @property
+    def policy(self) -> StampPolicy:
+        return self.wrench_clock.policy
+
+    @policy.setter
+    def policy(self, policy: StampPolicy) -> None:
+        self.pose_clock.policy = self.wrench_clock.policy = policy
+
+    @property
+    def last_pose_ns(self) -> int | None:
+        return self.pose_clock.last_ns
+
+    @property
+    def last_wrench_ns(self) -> int | None:
+        return self.wrench_clock.last_ns
+
+    def pose(self, msg, now_ns: int | None = None) -> PoseUpdate:
         """Move the model to the pose; rebuilds only when it moved more than the tolerance."""
+        self.notice = ''
         try:
-            pose = read_pose(msg, self.frame_id, self.quaternion_tolerance, self.last_pose_ns)
+            pose = read_pose(msg, self.frame_id, self.quaternion_tolerance)
+            stamp = self.pose_clock.check(pose.stamp_ns, now_ns)
             update = self.predictor.update_pose(pose.position_m, quaternion=pose.quaternion)
         except InvalidMessage:
             raise
         except NUMERIC_ERRORS as exc:
             raise InvalidMessage(f'pose rejected: {first_line(exc)}', 'state') from None
         except Exception as exc:  # noqa: BLE001 - a bug must not stop the node: report it
-            raise InvalidMessage(f'{type(exc).__name__}: {exc}', 'internal') from None
-        self.last_pose_ns = pose.stamp_ns
+            raise InvalidMessage(f'{type(exc).__name__}: {clip(exc)}', 'internal') from None
+        self.pose_clock.accept(stamp)
+        self.notice = stamp.note
         return update
 
-    def wrench(self, msg) -> np.ndarray:
-        """Advance the integrator to the wrench's stamp; the displacement (3,) m there."""
+    def wrench(self, msg, now_ns: int | None = None) -> np.ndarray:
+        """Advance the integrator to the wrench's time; the displacement (3,) m there."""
+        self.notice = ''
         try:
-            wrench = read_wrench(msg, self.frame_id, self.last_wrench_ns)
+            wrench = read_wrench(msg, self.frame_id)
+            stamp = self.wrench_clock.check(wrench.stamp_ns, now_ns)
             reason = self.predictor.wrench_reason(wrench.force_n, wrench.moment_nm)
             if reason:
                 raise InvalidMessage(reason, 'infeasible')
-            u = self.predictor.advance(wrench.stamp_ns, wrench.force_n, wrench.moment_nm)
+            if stamp.jumped:
+                self.predictor.rebase_time()
+            u = self.predictor.advance(stamp.ns, wrench.force_n, wrench.moment_nm)
         except InvalidMessage:
             raise
         except NUMERIC_ERRORS as exc:
             raise InvalidMessage(f'wrench rejected: {first_line(exc)}', 'state') from None
         except Exception as exc:  # noqa: BLE001
-            raise InvalidMessage(f'{type(exc).__name__}: {exc}', 'internal') from None
-        self.last_wrench_ns = wrench.stamp_ns
+            raise InvalidMessage(f'{type(exc).__name__}: {clip(exc)}', 'internal') from None
+        self.wrench_clock.accept(stamp)
+        self.notice = '; '.join(n for n in (stamp.note, self.predictor.notice) if n)
         return u

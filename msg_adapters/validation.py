@@ -18,6 +18,11 @@ class InvalidMessage(ValueError):
         self.kind = kind  # short category for counters: not_finite, frame, stamp, ...
 
 
+def ns_to_stamp(ns: int) -> Time:
+    """Integer nanoseconds (>= 0) as ``builtin_interfaces/Time``."""
+    return Time(sec=int(ns) // 1_000_000_000, nanosec=int(ns) % 1_000_000_000)
+
+
 def stamp_to_s(stamp) -> float:
     """``builtin_interfaces/Time`` as seconds (float)."""
     return stamp.sec + stamp.nanosec * 1e-9
@@ -34,10 +39,24 @@ def stamp_to_ns(stamp) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+#: longest user string (frame id, request name, parameter value) echoed into a log line or a
+#: diagnostic; longer ones are cut, with their length said.
+MAX_ECHO_CHARS = 80
+
+
+def clip(text: str, limit: int = MAX_ECHO_CHARS) -> str:
+    """``text`` cut to ``limit`` characters, saying how long it was: 'aaaa... (1048576 chars)'."""
+    text = str(text)
+    if len(text) <= limit:
+        return text
+    return f'{text[:limit]}... ({len(text)} chars)'
+
+
 def check_frame(header, frame_id: str, what: str) -> None:
-    """Raise :class:`InvalidMessage` unless ``header.frame_id`` is ``frame_id``."""
+    """Raise :class:`InvalidMessage` unless ``header.frame_id`` is ``frame_id`` (the frame id
+    received is echoed cut to :data:`MAX_ECHO_CHARS`)."""
     if header.frame_id != frame_id:
-        got = repr(header.frame_id) if header.frame_id else 'an empty frame_id'
+        got = clip(repr(header.frame_id)) if header.frame_id else 'an empty frame_id'
         raise InvalidMessage(f'{what} in frame {got}, expected {frame_id!r} (robot.frame_id); '
                              'no transform is applied', 'frame')
 

@@ -78,23 +78,39 @@ def output_dir(request) -> Path:
 # ----------------------------------------------------------------------------- helpers
 
 
-def write_config(tmp_path, **changes) -> Path:
-    """The paper config with ``section.name=value`` changes, written under ``tmp_path``."""
-    doc = yaml.safe_load(PAPER_CONFIG.read_text())
-    params = doc['cdpr_dynamics']['ros__parameters']
+def write_config(tmp_path, base: Path = PAPER_CONFIG, **changes) -> Path:
+    """``base`` (the paper config) with ``section.name=value`` changes (value None: left
+    out), written under ``tmp_path`` keyed ``/**`` as the shipped files are."""
+    doc = yaml.safe_load(Path(base).read_text())
+    params = doc['/**']['ros__parameters']
     for dotted, value in changes.items():
         section, name = dotted.split('.')
-        params[section][name] = value
+        if value is None:
+            params.get(section, {}).pop(name, None)
+        else:
+            params.setdefault(section, {})[name] = value
     path = tmp_path / 'robot.yaml'
     path.write_text(yaml.safe_dump(doc))
     return path
 
 
+def installed(name: str) -> str:
+    """Path of this package's installed console script ``name``, however it is installed: in
+    ``<prefix>/lib/cdpr_dynamics`` of its ament prefix (colcon workspace, /opt/ros, as
+    ``ros2 run`` finds it), beside this Python (a venv) or on PATH."""
+    from cdpr_dynamics.node_process import console_script
+    path = console_script(name)
+    if path is None:
+        raise FileNotFoundError(f'console script {name} not found: is cdpr_dynamics installed '
+                                '(scripts/setup.sh, or colcon build + install/setup.bash)?')
+    return str(path)
+
+
 def analyze(*args, env=None) -> subprocess.CompletedProcess:
     """Run the installed ``cdpr_analyze`` (one BLAS thread) with ``args``."""
-    exe = Path(sys.executable).with_name('cdpr_analyze')
-    return subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True,
-                          timeout=300, env={**(env or os.environ), 'OMP_NUM_THREADS': '1'})
+    return subprocess.run([installed('cdpr_analyze'), *map(str, args)], capture_output=True,
+                          text=True, timeout=300,
+                          env={**(env or os.environ), 'OMP_NUM_THREADS': '1'})
 
 
 def wait_until(condition, timeout: float, what: str, period: float = 0.05):

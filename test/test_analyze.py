@@ -2,8 +2,6 @@
 import json
 import os
 import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +9,7 @@ from numpy.testing import assert_allclose
 
 from cdpr_dynamics.config import ConfigError, default_config_path, load_settings, \
     read_params_file, settings_from_params
-from conftest import analyze, write_config
+from conftest import analyze, installed, write_config
 
 
 
@@ -94,8 +92,8 @@ def test_analyze_errors_are_one_line_with_nonzero_status(tmp_path, changes, args
 
 def test_analyze_without_ament_prefix_path_finds_the_paper_config(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != 'AMENT_PREFIX_PATH'}
-    exe = Path(sys.executable).with_name('cdpr_analyze')
-    out = subprocess.run([str(exe), '--method', 'spring', '--json', str(tmp_path / 'a.json')],
+    out = subprocess.run([installed('cdpr_analyze'), '--method', 'spring', '--json',
+                          str(tmp_path / 'a.json')],
                          capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     assert json.loads((tmp_path / 'a.json').read_text())['dofs'] == 3

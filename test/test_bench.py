@@ -1,15 +1,14 @@
 """cdpr_bench --quick runs every stage (no timing is asserted: this machine is shared)."""
 import json
 import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 
+from conftest import installed
+
 
 def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
-    exe = Path(sys.executable).with_name('cdpr_bench')
-    out = subprocess.run([str(exe), '--quick', '--json', str(tmp_path / 'b.json')],
+    out = subprocess.run([installed('cdpr_bench'), '--quick', '--json', str(tmp_path / 'b.json')],
                          capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     result = json.loads((tmp_path / 'b.json').read_text())
@@ -23,7 +22,8 @@ def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
     assert row['naive_max_relative_difference'] < 1e-9
     assert np.isfinite(row['naive_over_condensed'])
     assert rows[('fem', 64)]['dofs'] == 1515
-    assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'fem_sag'}
+    assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'catenary_exact',
+                                             'fem_sag_n16', 'fem_sag_n16_chord_statics'}
     assert result['node_compute_per_wrench']['p99_ms'] > 0
     replay = {r['method']: r for r in result['replay']}
     assert set(replay) == {'spring', 'fem'} and all(r['inputs'] > 0 for r in replay.values())

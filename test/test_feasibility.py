@@ -1,4 +1,6 @@
 """Wrench-feasible set and cable crossing checks against the tension QP and plain geometry."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -92,3 +94,82 @@ def test_parallel_and_skew_segments():
     assert cable_crossing(anchors, ends, 0.0005) == ''
     reason = cable_crossing(anchors, ends, 0.008)
     assert reason.startswith('cables 0 and 1 cross: 1.0 mm apart at [0.5, 0.5, 0.0]')
+
+
+# ------------------------------------------------------------- cross-check with an LP (HiGHS)
+
+def _many_cables(n_cables: int):
+    """A 6-DOF platform on ``n_cables`` cables from two rings of anchors."""
+    flat = read_params_file(default_config_path())
+    k = np.arange(n_cables)
+    angle = 2 * np.pi * k / n_cables
+    high = k % 2 == 0
+    flat['robot.anchors'] = np.column_stack([2.0 * np.cos(angle), 2.0 * np.sin(angle),
+                                             np.where(high, 2.5, 0.0)]).ravel().tolist()
+    flat['robot.attachments'] = np.column_stack([
+        0.1 * np.cos(angle + 0.3), 0.1 * np.sin(angle + 0.3),
+        np.where(high, 0.05, -0.05)]).ravel().tolist()
+    flat['robot.inertia_kg_m2'] = [0.5, 0.5, 0.5, 0.0, 0.0, 0.0]
+    return settings_from_params(flat)
+
+
+def _lp_feasible(wt, w, t_min, t_max) -> bool:
+    """Independent answer: is there T in [t_min, t_max]^n with W^T T = w? (HiGHS)"""
+    from scipy.optimize import linprog
+    n = wt.shape[1]
+    return linprog(np.zeros(n), A_eq=wt, b_eq=w, bounds=[(t_min, t_max)] * n,
+                   method='highs').status == 0
+
+
+def _candidate_wrenches(wt, t_min, t_max, rng, count):
+    """Wrenches the cables must supply: inside, on and just outside the boundary, far out."""
+    d, n = wt.shape
+    centre = wt @ np.full(n, 0.5 * (t_min + t_max))
+    for _ in range(count):
+        direction = rng.normal(size=d)
+        support = wt @ np.where(wt.T @ direction > 0, t_max, t_min)     # on the boundary
+        inner = wt @ rng.uniform(t_min, t_max, n)
+        for base in (support, inner):
+            for scale in (1.0, 1.0 - 1e-9, 1.0 + 1e-9, 0.999, 1.001, rng.uniform(0.3, 1.7)):
+                yield centre + scale * (base - centre)
+
+
+ROBOTS = {
+    'paper point mass': lambda: load_settings(),
+    'rigid_cdpr.yaml 6-DOF': lambda: settings_from_params(read_params_file(
+        Path(__file__).parent / 'data' / 'rigid_cdpr.yaml')),
+    '12 cables 6-DOF': lambda: _many_cables(12),
+    '24 cables 6-DOF (sampled normals)': lambda: _many_cables(24),
+}
+
+
+@pytest.mark.parametrize('name', list(ROBOTS))
+def test_wrench_set_never_rejects_what_an_lp_finds_feasible(name):
+    """Issue 9: the node rejected a wrench an LP (HiGHS) shows feasible. Over random wrenches,
+    on and near the boundary too, at three poses of each robot: every LP-feasible wrench is
+    accepted; and every wrench accepted away from the boundary is LP-feasible."""
+    settings = ROBOTS[name]()
+    robot = settings.robot
+    t_min, t_max = settings.tension_min_n, settings.tension_max_n
+    rng = np.random.default_rng(11)
+    need = required_wrench(robot)
+    counts = {'feasible': 0, 'infeasible': 0}
+    for _ in range(3):
+        p = settings.initial_position_m + rng.uniform(-0.15, 0.15, 3)
+        rot = (Rotation.from_euler('xyz', rng.uniform(-0.03, 0.03, 3)).as_matrix()
+               if robot.platform_dofs == 6 else None)
+        wt = geometry(robot, p, rot).structure_matrix
+        wset = WrenchSet(wt, t_min, t_max, need)
+        for w in _candidate_wrenches(wt, t_min, t_max, rng, 12):
+            ext = np.zeros(6)
+            ext[:w.size] = need - w
+            accepted = wset.reason(ext[:3], ext[3:]) == ''
+            lp = _lp_feasible(wt, w, t_min, t_max)
+            counts['feasible' if lp else 'infeasible'] += 1
+            if lp:
+                assert accepted, (name, w, wset.reason(ext[:3], ext[3:]))
+            elif accepted:      # only within the tolerance of the boundary
+                shrunk = w + 1e-6 * t_max * (wt @ np.full(wt.shape[1], 0.5 * (t_min + t_max))
+                                             - w) / max(1.0, np.linalg.norm(w))
+                assert _lp_feasible(wt, shrunk, t_min - 1e-6 * t_max, t_max + 1e-6 * t_max), w
+    assert counts['feasible'] > 60 and counts['infeasible'] > 30, counts

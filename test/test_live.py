@@ -70,14 +70,22 @@ def test_pose_within_tolerance_does_not_rebuild_and_bad_pose_keeps_state(setting
 
 
 def test_invalid_model_falls_back_to_spring_with_a_warning(settings):
-    """A 0.5 N end tension cannot hold 10.8 N of cable: no catenary exists, so catenary_exact
-    is invalid; spring needs only T > 0 and takes over, saying why."""
-    s = settings.replace(method='catenary_exact', tension_min_n=0.5)
+    """A 0.5 N end tension cannot hold 10.8 N of cable: no catenary exists at the chord
+    tensions, so the paper's catenary is invalid; spring needs only T > 0 and takes over,
+    saying why. catenary_exact's sag-consistent statics instead lift those cables to the least
+    tension a catenary exists at, and say so."""
+    s = settings.replace(method='catenary', tension_min_n=0.5)
     s = s.replace(cable=dataclasses.replace(s.cable, weight_per_length_n_per_m=5.0))
     update = LivePredictor(s).last_update
     assert update.method == 'spring'
-    assert any('too slack to hold itself' in w for w in update.warnings)
-    assert 'method catenary_exact failed for this state; fell back to spring' in update.warnings
+    assert any("the paper's catenary assumes one that cannot exist" in w
+               for w in update.warnings)
+    assert 'method catenary failed for this state; fell back to spring' in update.warnings
+    exact = LivePredictor(s.replace(method='catenary_exact'))
+    assert exact.last_update.method == 'catenary_exact'
+    assert exact.eq.statics == 'sag' and exact.eq.tensions.tension_n.min() > 0.5
+    assert any('no taut catenary spans its chord below' in w
+               for w in exact.last_update.warnings)
 
 
 def test_auto_choice_is_kept_for_small_moves_and_redone_for_large_ones(settings):

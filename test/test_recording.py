@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import os
+import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -25,8 +27,10 @@ from rosbags.interfaces import QosReliability
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
-from cdpr_dynamics.recording import (
-    read_messages, recording_info, RecordingError, recover_recording)
+from cdpr_dynamics.recording.base import RecordingError
+from cdpr_dynamics.recording.reader import read_messages, recording_info
+from cdpr_dynamics.recording.recovery import recover_recording
+from cdpr_dynamics.recording.writer import ChunkedFile, FIRST_CHUNK_BYTES
 from msg_adapters import mcap_schema
 from conftest import wait_until
 
@@ -171,18 +175,18 @@ class Processes:
     def __init__(self, env: dict, folder: Path):
         self.env, self.folder, self.procs = env, folder, []
 
-    def start(self, name: str, args: list, stdin=None) -> subprocess.Popen:
+    def start(self, name: str, args: list, stdin=None, **popen) -> subprocess.Popen:
         out = open(self.folder / f'{name}.out', 'w')
         err = open(self.folder / f'{name}.err', 'w')
         proc = subprocess.Popen(args, env=self.env, stdout=out, stderr=err, stdin=stdin,
-                                cwd=self.folder, start_new_session=True)
+                                cwd=self.folder, start_new_session=True, **popen)
         proc.log_names = (self.folder / f'{name}.out', self.folder / f'{name}.err')
         self.procs.append(proc)
         return proc
 
-    def recorder(self, path: Path, *extra) -> subprocess.Popen:
+    def recorder(self, path: Path, *extra, **popen) -> subprocess.Popen:
         return self.start('cdpr_record', [PYTHON, '-m', 'cdpr_dynamics.cli.record',
-                                          '--output', str(path), *extra])
+                                          '--output', str(path), *extra], **popen)
 
     def publisher(self, *args) -> subprocess.Popen:
         script = self.folder / 'fake_cdpr.py'
@@ -589,3 +593,197 @@ def test_cli_refuses_to_overwrite(ros_env, tmp_path):
     assert result.stderr.strip().count('\n') == 0 and 'exists' in result.stderr
     assert 'Traceback' not in result.stderr
     assert target.read_bytes() == b'what the user recorded'
+
+
+# ----------------------------------------------------------------------------- full disk
+
+
+def write_failure_checks(path: Path, err: str, cause: str) -> int:
+    """What a recorder stopped by a failing write must leave: one error line naming the cause,
+    and a file every reader opens, with the same messages in the order published (a flood:
+    the subscription's queue may drop some)."""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and 'Traceback' not in err, err
+    assert lines[0].startswith('cdpr_record: error: cannot write') and cause in lines[0], err
+    assert 'finished with its summary' in lines[0], err
+    with open(path, 'rb') as stream:                       # mcap: summary, footer, index
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        n = summary.statistics.message_count
+        assert n == sum(1 for _ in reader.iter_messages())
+    assert f'the file keeps {n} messages' in lines[0], err
+    by_topic, _ = rosbags_read(path)                       # rosbags needs the footer
+    xs = [int(m.pose.position.x) for _, m in by_topic['/pose']]
+    assert len(xs) == n and xs == sorted(set(xs)), 'in the order published, each once'
+    info = recording_info(path)
+    assert info.complete and info.message_count == n
+    return n
+
+
+@pytest.fixture
+def small_disk(output_dir):
+    """A 192 kB tmpfs (we run as root here); what it holds is copied out before unmounting."""
+    mount = output_dir / 'small_disk'
+    mount.mkdir()
+    done = subprocess.run(['mount', '-t', 'tmpfs', '-o', 'size=192k', 'tmpfs', str(mount)],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f'cannot mount a tmpfs here ({done.stderr.strip()}); '
+                    'test_file_size_limit_leaves_a_finished_file covers a failing write')
+    try:
+        yield mount
+    finally:
+        for item in mount.iterdir():
+            shutil.copy(item, output_dir / item.name)
+        if subprocess.run(['umount', str(mount)]).returncode != 0:
+            subprocess.run(['umount', '--lazy', str(mount)], check=True)   # a file still open
+
+
+def test_full_disk_leaves_a_finished_file(procs, output_dir, small_disk):
+    path = small_disk / 'full.mcap'
+    recorder = procs.recorder(path, '--topics', 'pose')
+    procs.publisher('flood', output_dir / 'flood.json', 0, 30.0)
+    recorder.wait(timeout=60)          # it stops by itself when the disk is full
+    err = recorder.log_names[1].read_text()
+    assert recorder.returncode == 1, err
+    n = write_failure_checks(path, err, 'No space left on device')
+    free = shutil.disk_usage(small_disk).free
+    print(f'\nfull disk (192 kB tmpfs): kept {n} PoseStamped in {path.stat().st_size} bytes, '
+          f'{free} bytes left free')
+    assert n > 500
+    assert not [p for p in small_disk.iterdir() if p != path], 'no reserve or temporary file'
+
+
+def test_no_room_even_to_finish_leaves_the_whole_chunks(small_disk, tmp_path):
+    """If the freed space is taken before the summary is written (here: the reserve is given
+    up and another file fills the disk), the file stays cut after its last whole chunk."""
+    path = small_disk / 'cut.mcap'
+    out = ChunkedFile(path)
+    for topic, type_name in {**TYPES, EVENT_TOPIC: EVENT_TYPE}.items():   # a summary > a page
+        schema = out.register_schema(type_name, 'ros2msg',
+                                     mcap_schema.message_definition(type_name).encode())
+        channel = out.register_channel(topic, 'cdr', schema,
+                                       mcap_schema.channel_metadata(type_name))
+        if topic == '/pose':
+            pose_channel = channel
+    channel = pose_channel
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.serialization import serialize_message
+    accepted = 0
+    while True:
+        msg = PoseStamped()
+        msg.pose.position.x = float(accepted)
+        if not out.add_message(channel, 10**9 + accepted, serialize_message(msg),
+                               10**9 + accepted, accepted):
+            break
+        accepted += 1
+    assert 'No space left on device' in out.error and 0 < out.message_count < accepted
+    out._reserve.close()       # the reserve given up, its room taken by another file
+    out._reserve = None
+    filler = os.open(small_disk / 'filler', os.O_WRONLY | os.O_CREAT)
+    try:
+        with pytest.raises(OSError, match='No space left'):
+            while True:
+                os.write(filler, bytes(512))
+    finally:
+        os.close(filler)
+    out.finish()
+    assert not out.complete and path.stat().st_size == out.bytes
+    count = 0
+    with open(path, 'rb') as stream:           # mcap's stream reader: every whole chunk
+        try:
+            for _ in NonSeekingReader(stream).iter_messages(log_time_order=False):
+                count += 1
+        except EndOfFile:
+            pass
+    assert count == out.message_count
+    fixed = tmp_path / 'fixed.mcap'
+    assert recover_recording(path, fixed) == count
+    by_topic, _ = rosbags_read(fixed)
+    assert [int(m.pose.position.x) for _, m in by_topic['/pose']] == list(range(count))
+    (small_disk / 'filler').unlink()
+
+
+def test_file_size_limit_leaves_a_finished_file(procs, output_dir):
+    """ulimit -f 160 kB: the recorder keeps the first chunks, finished, below the limit."""
+    limit = 160_000
+    path = output_dir / 'limited.mcap'
+    recorder = procs.recorder(path, '--topics', 'pose', preexec_fn=lambda: resource.setrlimit(
+        resource.RLIMIT_FSIZE, (limit, limit)))
+    procs.publisher('flood', output_dir / 'flood.json', 0, 30.0)
+    recorder.wait(timeout=60)
+    err = recorder.log_names[1].read_text()
+    assert recorder.returncode == 1, err
+    n = write_failure_checks(path, err, 'File too large')
+    print(f'\nfile-size limit {limit} bytes: kept {n} PoseStamped in {path.stat().st_size} '
+          'bytes')
+    assert path.stat().st_size <= limit and n > 500
+
+
+def test_chunks_start_small_and_double(tmp_path):
+    """The first chunk is bounded (a nearly full disk keeps the first messages); each next
+    one may be twice as large, up to the chunk size."""
+    path = tmp_path / 'chunks.mcap'
+    chunk_size = 100_000
+    out = ChunkedFile(path, chunk_size=chunk_size)
+    type_name = 'geometry_msgs/msg/PoseStamped'
+    schema = out.register_schema(type_name, 'ros2msg',
+                                 mcap_schema.message_definition(type_name).encode())
+    channel = out.register_channel('/pose', 'cdr', schema,
+                                   mcap_schema.channel_metadata(type_name))
+    payload = 200
+    for i in range(3000):
+        assert out.add_message(channel, 10**9 + i, bytes(payload), 10**9 + i, i)
+    out.finish()
+    assert out.complete and out.error is None
+    with open(path, 'rb') as stream:
+        summary = make_reader(stream).get_summary()
+    sizes = [c.uncompressed_size for c in summary.chunk_indexes]
+    record = payload + 31          # a message record: opcode, length, ids and times, data
+    bound = FIRST_CHUNK_BYTES
+    for size in sizes[:-1]:        # the last one is what remained at finish()
+        assert bound <= size < bound + record + 4096, (sizes, bound)   # 4096: the schema
+        bound = min(2 * bound, chunk_size)
+    assert sum(1 for _ in make_reader(open(path, 'rb')).iter_messages()) == 3000
+
+
+def record_cli(env, *args) -> subprocess.CompletedProcess:
+    return subprocess.run([PYTHON, '-m', 'cdpr_dynamics.cli.record', *map(str, args)],
+                          env=env, capture_output=True, text=True, timeout=60)
+
+
+def test_recover_cli(ros_env, tmp_path):
+    good = tmp_path / 'good.mcap'
+    write_sample(good, 200)
+    cut = tmp_path / 'cut.mcap'
+    data = good.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])
+    survivors = len(list(read_messages(cut, allow_incomplete=True)))
+    assert 0 < survivors < 200
+    out = tmp_path / 'recovered.mcap'
+    result = record_cli(ros_env, '--recover', cut, out)
+    assert result.returncode == 0, result.stderr
+    line = result.stdout.strip()
+    assert line.count('\n') == 0 and f'recovered {survivors} messages from ' in line, line
+    assert f'from {recording_info(cut).chunk_count} whole chunks' in line, line
+    assert f'was cut short) into {out.resolve()}: /pose {survivors}' in line, line
+    by_topic, _ = rosbags_read(out)
+    assert len(by_topic['/pose']) == survivors and recording_info(out).complete
+    before = cut.read_bytes()
+
+    def error(*args) -> str:
+        result = record_cli(ros_env, '--recover', *args)
+        err = result.stderr.strip()
+        assert result.returncode == 1 and err.count('\n') == 0 and 'Traceback' not in err, err
+        return err
+
+    assert 'exists; not overwriting it' in error(cut, out)
+    assert 'is the recording to recover' in error(cut, cut)
+    assert '--recover never replaces a file' in error(cut, out, '--force')
+    assert 'no such file' in error(tmp_path / 'missing.mcap', tmp_path / 'x.mcap')
+    garbage = tmp_path / 'garbage.mcap'
+    garbage.write_bytes(os.urandom(3000))
+    assert 'not an MCAP file' in error(garbage, tmp_path / 'y.mcap')
+    assert cut.read_bytes() == before
+    assert not (tmp_path / 'x.mcap').exists() and not (tmp_path / 'y.mcap').exists()
+    assert not list(tmp_path.glob('.*partial*'))

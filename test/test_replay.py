@@ -41,8 +41,10 @@ from std_msgs.msg import String
 
 from cdpr_dynamics import scenarios
 from cdpr_dynamics.config import read_params_file
-from cdpr_dynamics.recording import (RecordingError, RecordingWriter, message_class,
-                                     read_messages, recording_info, serialize)
+from cdpr_dynamics.recording.base import message_class, RecordingError
+from cdpr_dynamics.recording.cdr import serialize
+from cdpr_dynamics.recording.reader import read_messages, recording_info
+from cdpr_dynamics.recording.writer import RecordingWriter
 from cdpr_dynamics.config import ConfigError
 from cdpr_dynamics.replay import (NodeOptions, ReplayError, compare_outputs,
                                   load_replay_config, read_predictions, replay_offline)
@@ -486,6 +488,94 @@ def test_existing_output_is_kept_unless_force(tmp_path, ros_env):
     assert recording_info(target).complete and leftovers(tmp_path) == []
     with pytest.raises(RecordingError, match='exists'):
         RecordingWriter(target)
+
+
+# ----------------------------------------------------------------------------- bad messages
+
+
+def with_bad_message(path: Path, bad_index: int) -> tuple[list, str]:
+    """The golden step_wrench inputs with message ``bad_index`` (in reading order) replaced by
+    bytes that do not decode; the inputs as read and the topic of the bad one."""
+    inputs = list(read_messages(golden('step_wrench'), {'pose': POSE, 'wrench': WRENCH},
+                                raw=True))
+    with RecordingWriter(path) as writer:
+        writer.add_topic('/pose', POSE)
+        writer.add_topic('/wrench', WRENCH)
+        for i, m in enumerate(inputs):
+            data = b'\x00\x01\x00\x00' + b'\xff' * 8 if i == bad_index else m.data
+            writer.write(m.topic, data, m.log_time_ns, m.publish_time_ns)
+    return inputs, inputs[bad_index].topic
+
+
+def test_skip_bad_replays_past_an_undecodable_message(tmp_path, ros_env):
+    source = tmp_path / 'one_bad.mcap'
+    bad = 123
+    inputs, topic = with_bad_message(source, bad)
+    assert topic == '/wrench'
+    # without --skip-bad: one line naming the message and its topic, no output
+    out = tmp_path / 'stopped.mcap'
+    result = replay_cli(source, '--output', out, '--no-progress', *GOLDEN_ARGS, env=ros_env)
+    err = result.stderr.strip()
+    assert result.returncode == 1 and err.count('\n') == 0 and 'Traceback' not in err, err
+    assert f'cannot decode message {bad} (a {WRENCH} on /wrench' in err, err
+    assert not out.exists() and leftovers(tmp_path) == []
+    # with it: every other input replayed, the skip counted and named
+    out = tmp_path / 'skipped.mcap'
+    result = replay_cli(source, '--output', out, '--no-progress', '--skip-bad', *GOLDEN_ARGS,
+                        env=ros_env)
+    assert result.returncode == 0, result.stderr
+    assert f'skipped 1 undecodable input message(s); the first: {source}: cannot decode ' \
+           f'message {bad}' in result.stdout, result.stdout
+    wrenches = sum(1 for m in inputs if m.topic == '/wrench')
+    assert f'{wrenches - 1} wrenches' in result.stdout
+    kept = [m.data for m in read_messages(out, {'pose': POSE, 'wrench': WRENCH}, raw=True)]
+    assert kept == [m.data for i, m in enumerate(inputs) if i != bad]
+    assert recording_info(out).topics['/predicted_displacement'].message_count == wrenches - 1
+    # the library call counts the same
+    settings, options = golden_settings()
+    summary = replay_offline(source, tmp_path / 'api.mcap', settings, options=options,
+                             skip_bad=True)
+    assert summary.skipped == 1 and summary.wrenches == wrenches - 1
+
+
+def long_input(path: Path, n: int = 5000) -> None:
+    """One pose then ``n`` wrenches 1 ms apart: a replay that takes seconds."""
+    with RecordingWriter(path) as writer:
+        writer.add_topic('/pose', POSE)
+        writer.add_topic('/wrench', WRENCH)
+        pose = next(m for m in read_messages(golden('step_wrench'), {'pose': POSE}, raw=True))
+        writer.write('/pose', pose.data, scenarios.T0_NS)
+        for k in range(1, n + 1):
+            msg = message_class(WRENCH)()
+            msg.header.frame_id = 'world'
+            msg.header.stamp = stamp_msg(scenarios.T0_NS + k * 10**6)
+            msg.wrench.force.z = 10.0
+            writer.write('/wrench', msg, scenarios.T0_NS + k * 10**6)
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_signal_ends_an_offline_replay_with_130_and_no_output(sig, tmp_path, ros_env):
+    source = tmp_path / 'long.mcap'
+    long_input(source)
+    folder = tmp_path / 'out'
+    folder.mkdir()
+    out = folder / 'never.mcap'
+    proc = subprocess.Popen([PYTHON, '-m', 'cdpr_dynamics.cli.replay', str(source), '--output',
+                             str(out), '--no-progress', *GOLDEN_ARGS], env=ros_env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_until(lambda: leftovers(folder) or proc.poll() is not None, 60,
+                   'the replay to start writing')
+        assert proc.poll() is None, 'the replay ended before the signal'
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, (stdout, stderr)
+    assert stderr.strip() == 'cdpr_replay: error: interrupted; no output written', stderr
+    assert not out.exists() and leftovers(folder) == []
 
 
 # ----------------------------------------------------------------------------- live

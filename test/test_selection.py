@@ -8,7 +8,8 @@ symmetric in-plane mode by 0.8 %). Robots:
 * a low-tension one: 4 x 3 x 3 m frame, 3 mm steel cables (A = 7.07e-6 m^2, E = 2e11 Pa,
   gamma = 0.55 N/m), 10 kg point mass, tension.min_n = 20 N: lambda^2 = 334 (lower cables)
   and 8.6 (upper): straight models are 45 % (modes) and 72 % (FRF) off;
-* a 6-DOF one: the paper's frame with a 0.2 m cube platform, inertia 0.4 kg m^2;
+* a 6-DOF one (test/data/rigid_cdpr.yaml): the paper's frame with a 0.4 m cube platform;
+* a heavy-sag 6-DOF one (test/data/sagging_6dof.yaml): 8 x 6 x 4 m, 4 mm steel at 30-60 N;
 * the paper's with 2 % modal damping instead of its Rayleigh 0.05/0.05 (zeta = 5 at 32 Hz):
   resonances then show, and the straight models' sag error in the FRF grows from 0.9 % to 25 %.
 
@@ -17,6 +18,7 @@ paper  10 Hz: 10 % spring (0.93 % FRF), 1 % catenary (0.24 %), 0.1 % fem_sag 4 (
 paper  40 Hz: 10 % fem 5 (7.4/6.7 %), 1 % fem_sag 15 (0.73 %), 0.1 % fem_sag 46 (0.078 %)
 paper 100 Hz: 10 % fem 15 (7.4/6.0 %), 1 % fem_sag 44 (0.77 %), 0.1 % fem_sag 137 (0.079 %)
 """
+import json
 import math
 from pathlib import Path
 
@@ -27,13 +29,18 @@ from cdpr_dynamics import models
 from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium, safe
 from cdpr_dynamics.config import read_params_file, settings_from_params
 from cdpr_dynamics.dynamics import Damping
+from cdpr_dynamics.live import LivePredictor
 from cdpr_dynamics.models.base import CableSet
-from cdpr_dynamics.selection import (MISSED, SAFETY, Estimator, ModelChoice, SelectionError,
-                                     accuracy_warnings, choose_model, dispersion_error,
-                                     irvine_symmetric_ratio, largest_phase, measure_error,
-                                     reference_solution, scene, true_end_stiffness)
+from cdpr_dynamics.closed_forms import (dispersion_error, irvine_symmetric_ratio, largest_phase,
+                                        scene, true_end_stiffness)
+from cdpr_dynamics.estimates import MISSED, Estimator, percent
+from cdpr_dynamics.reference import measure_error, reference_solution
+from cdpr_dynamics.selection import (SAFETY, ModelChoice, SelectionError, accuracy_warnings,
+                                     choose_model, model_dofs)
+from conftest import analyze, write_config
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'paper_cdpr.yaml'
+DATA = Path(__file__).resolve().parent / 'data'
 
 
 def box(x, y, z):
@@ -60,10 +67,15 @@ def low_tension(**changes):
 
 
 def six_dof(**changes):
-    flat = read_params_file(CONFIG)
-    anchors = np.asarray(flat['robot.anchors'], dtype=float).reshape(-1, 3)
-    flat['robot.attachments'] = (0.1 * np.sign(anchors - [0.0, 0.0, 1.25])).ravel().tolist()
-    flat['robot.inertia_kg_m2'] = [0.4, 0.4, 0.4, 0.0, 0.0, 0.0]
+    """test/data/rigid_cdpr.yaml: the paper's frame and cables, a 0.4 m cube platform."""
+    flat = read_params_file(DATA / 'rigid_cdpr.yaml')
+    flat.update(changes)
+    return settings_from_params(flat)
+
+
+def heavy_sag(**changes):
+    """test/data/sagging_6dof.yaml: lambda^2 from ~500 to ~3000, 2 % modal damping."""
+    flat = read_params_file(DATA / 'sagging_6dof.yaml')
     flat.update(changes)
     return settings_from_params(flat)
 
@@ -74,7 +86,7 @@ def paper_light(**changes):
 
 
 ROBOTS = {'paper': paper, 'low_tension': low_tension, 'six_dof': six_dof,
-          'paper_light': paper_light}
+          'paper_light': paper_light, 'heavy_sag': heavy_sag}
 _cache = {}
 
 
@@ -176,6 +188,7 @@ def test_estimates_bound_the_real_errors(robot, band):
 
 # --------------------------------------------------------------------------- the choice
 
+UNLIMITED = 10 ** 6          # model.max_dofs that leaves the choice to the tolerance alone
 PAPER_PICKS = {(10.0, 0.1): ('spring', 1), (10.0, 0.01): ('catenary', 1),
                (10.0, 0.001): ('fem_sag', 4), (40.0, 0.1): ('fem', 5),
                (40.0, 0.01): ('fem_sag', 15), (40.0, 0.001): ('fem_sag', 46),
@@ -186,7 +199,8 @@ PAPER_PICKS = {(10.0, 0.1): ('spring', 1), (10.0, 0.01): ('catenary', 1),
 @pytest.mark.parametrize('band, tolerance', sorted(PAPER_PICKS))
 def test_auto_on_the_paper_robot_meets_the_tolerance(band, tolerance):
     settings, eq, ref = case('paper', band)
-    choice = choose_model(settings.replace(tolerance=tolerance), eq, damping=ref.damping)
+    choice = choose_model(settings.replace(tolerance=tolerance, max_dofs=UNLIMITED), eq,
+                          damping=ref.damping)
     assert (choice.method, choice.elements_per_cable) == PAPER_PICKS[(band, tolerance)]
     real = measure_error(settings, eq, choice.method, choice.elements_per_cable, ref)
     assert real.freq_error < tolerance and real.frf_error < tolerance
@@ -199,11 +213,12 @@ def test_auto_on_the_paper_robot_meets_the_tolerance(band, tolerance):
 @pytest.mark.parametrize('tolerance', [0.1, 0.01, 0.001])
 def test_auto_on_other_robots_meets_the_tolerance(robot, band, tolerance):
     settings, eq, ref = case(robot, band)
-    choice = choose_model(settings.replace(tolerance=tolerance), eq, damping=ref.damping)
+    choice = choose_model(settings.replace(tolerance=tolerance, max_dofs=UNLIMITED), eq,
+                          damping=ref.damping)
     real = measure_error(settings, eq, choice.method, choice.elements_per_cable, ref)
     assert real.freq_error < tolerance and real.frf_error < tolerance, (choice, real)
-    if robot == 'low_tension':
-        assert choice.method == 'fem_sag'        # never a straight (or massless) model
+    if robot == 'low_tension':                   # never a model that ignores sag
+        assert choice.method not in models.STRAIGHT_METHODS
 
 
 def test_low_tension_robot_straight_models_fail_and_auto_says_why():
@@ -239,10 +254,53 @@ def test_choice_is_a_frozen_record_with_a_one_line_reason():
 
 def test_unreachable_tolerance_takes_the_best_and_says_so():
     settings, eq, _ = case('paper', 100.0)
-    choice = choose_model(settings.replace(tolerance=1e-6), eq)
+    choice = choose_model(settings.replace(tolerance=1e-6, max_dofs=UNLIMITED), eq)
     assert choice.method == 'fem_sag' and choice.elements_per_cable == 256
-    assert 'no model reaches model.tolerance' in choice.reason
-    assert choice.estimated_error > 1e-6
+    assert 'no model within n <= 256 meets model.tolerance' in choice.reason
+    assert choice.estimated_error > 1e-6 and not choice.meets_tolerance
+    assert choice.warnings == (f'accuracy: {choice.reason}',)
+
+
+def test_auto_stays_within_the_budget_and_says_what_would_meet_the_tolerance():
+    """0-100 Hz at 1 % needs fem_sag n = 44 (1035 DOFs): over the default 600 DOFs auto
+    takes the most accurate model within them, fem_sag n = 25, and says so."""
+    settings, eq, ref = case('paper', 100.0)
+    assert settings.max_dofs == 600
+    unlimited = choose_model(settings.replace(max_dofs=UNLIMITED), eq, damping=ref.damping)
+    assert (unlimited.method, unlimited.elements_per_cable, unlimited.dofs) == ('fem_sag', 44,
+                                                                                 1035)
+    choice = choose_model(settings, eq, damping=ref.damping)
+    assert (choice.method, choice.elements_per_cable, choice.dofs) == ('fem_sag', 25, 579)
+    assert not choice.meets_tolerance and choice.estimated_error > settings.tolerance
+    assert choice.reason.startswith('auto: no model within model.max_dofs 600 meets '
+                                    'model.tolerance 1 % over 0-100 Hz; fem_sag n=25 (579 DOFs) '
+                                    'is the most accurate within it, estimated ')
+    assert 'fem_sag n=44 (1035 DOFs) would meet it with model.max_dofs >= 1035' in choice.reason
+    assert all(model_dofs(n, 8, 3) <= 600 for m, n, _ in choice.considered if n <= 256)
+    measured = measure_error(settings, eq, 'fem_sag', 25, ref)
+    assert measured.error <= SAFETY * choice.estimated_error
+    # exactly at the budget of n = 44 it is taken
+    at = choose_model(settings.replace(max_dofs=1035), eq, damping=ref.damping)
+    assert (at.method, at.elements_per_cable) == ('fem_sag', 44) and at.meets_tolerance
+
+
+def test_a_budget_of_massless_models_only_still_takes_the_most_accurate():
+    """With room for no cable DOF at all, every candidate misses the cable modes: the most
+    accurate is named with its (uncapped) estimate; below the platform's DOFs, a refusal."""
+    settings, eq, ref = case('heavy_sag', 5.0)
+    choice = choose_model(settings.replace(max_dofs=6), eq, damping=ref.damping)
+    assert choice.dofs == 6 and not choice.meets_tolerance
+    assert choice.method == 'spring'     # FRF 126 % off; catenary_exact 634 % (measured 259)
+    spring = Estimator(settings, eq, damping=ref.damping).estimate('spring', 1)
+    assert spring.frf_error > 1.0                  # uncapped: 126 %
+    assert choice.estimated_error == pytest.approx(spring.error)
+    assert 'model.max_dofs 6 meets' in choice.reason
+    assert f'estimated {percent(spring.error)} % off' in choice.reason
+    measured = measure_error(settings, eq, 'spring', 1, ref).frf_error    # 110 %
+    assert measured > 1.0 and measured <= spring.frf_error <= 1.25 * measured
+    with pytest.raises(SelectionError, match="model.max_dofs = 5 is below the platform's 6 "
+                                             'DOFs'):
+        choose_model(settings.replace(max_dofs=5), eq)
 
 
 def test_undamped_settings_judge_by_frequencies_only():
@@ -290,3 +348,22 @@ def test_estimator_damping_and_band_overrides():
     est = Estimator(settings, eq, f_max_hz=10.0, damping=Damping(0.05, 0.05))
     assert est.scene.f_max_hz == 10.0 and est.scene.cable_modes_in_band == 0
     assert est.estimate('spring', 1).freq_error == 0.0
+
+
+def test_what_auto_says_reaches_the_json_and_the_node(tmp_path):
+    """cdpr_analyze's JSON carries the uncapped estimate and the warning; the live predictor
+    (what the node's diagnostics show) the same warning."""
+    config = write_config(tmp_path, DATA / 'sagging_6dof.yaml', **{'model.max_dofs': 6})
+    out = analyze('--config', config, '--json', tmp_path / 'r.json', '--excitation-hz', 1.0,
+                  '--duration', 0.2)
+    assert out.returncode == 0, out.stderr
+    doc = json.loads((tmp_path / 'r.json').read_text())
+    assert doc['model_choice']['method'] == 'spring'
+    estimated = doc['model_choice']['estimated_error']
+    assert estimated > 1.0                                   # uncapped (126 %)
+    said = [w for w in doc['warnings'] if w.startswith('accuracy: auto: no model within '
+                                                       'model.max_dofs 6 meets')]
+    assert len(said) == 1 and f'estimated {percent(estimated)} % off' in said[0]
+    predictor = LivePredictor(heavy_sag(**{'model.max_dofs': 6}))
+    assert predictor.last_update.method == 'spring'
+    assert said[0] in predictor.last_update.warnings

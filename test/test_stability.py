@@ -22,10 +22,13 @@ from cdpr_dynamics.config import load_settings, read_params_file, settings_from_
 from cdpr_dynamics.dynamics import (Damping, DynamicsError, Newmark, frequency_response,
                                     natural_frequencies)
 from cdpr_dynamics.models.base import CableSet
+from cdpr_dynamics.robot import geometry
+from cdpr_dynamics.statics import EXIST_MARGIN, lowest_tension
+from cdpr_dynamics.tensions import TensionResult
 from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.models.dsm import natural_frequencies_dsm
-from cdpr_dynamics.selection import accuracy_warnings, choose_model, measure_error, \
-    reference_solution
+from cdpr_dynamics.reference import measure_error, reference_solution
+from cdpr_dynamics.selection import accuracy_warnings, choose_model
 from conftest import analyze, write_config
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'paper_cdpr.yaml'
@@ -69,8 +72,14 @@ def test_pendulum_robot_on_one_vertical_cable():
                  'robot.mass_kg': 5.0, 'robot.initial_position': [0.0, 0.0, 1.0],
                  'tension.min_n': 1.0})
     settings = settings_from_params(flat)
-    eq = equilibrium(settings)
-    assert eq.tensions.tension_n[0] == pytest.approx(5 * 9.81)
+    with pytest.raises(AnalysisError, match='rank 1 < 3 platform DOFs'):
+        equilibrium(settings)        # as a robot it holds nothing sideways: refused
+    # the models themselves still describe the pendulum the mass hangs as
+    geo = geometry(settings.robot, settings.initial_position_m)
+    tension = np.array([5 * 9.81])
+    cables = CableSet(geo.chord_m, tension, settings.cable.ea_n,
+                      settings.cable.weight_per_length_n_per_m, settings.robot.gravity_m_s2)
+    eq = Equilibrium(geo, TensionResult(tension, 'solved', True, 0.0, 0), cables)
     pendulum = math.sqrt(9.81 / 2.0) / (2 * math.pi)
     for method in ('spring', 'catenary', 'catenary_exact', 'fem_sag', 'fem'):
         system = build_system(settings, eq, method, 4)
@@ -102,23 +111,30 @@ def test_cable_below_its_load_cannot_hold_its_weight():
         assert not assembly.valid and assembly.warnings and finite_stiffness(assembly), method
 
 
-def test_analysis_refuses_a_scene_without_a_catenary(tmp_path):
-    """Low-tension steel robot at tension.min_n = 0.05 N: the lower cables (1.6 N of weight)
-    cannot hold themselves; catenary_exact fails with one line, auto too."""
+def test_a_scene_without_a_catenary_at_tension_min(tmp_path):
+    """Low-tension steel robot at tension.min_n = 0.05 N: no taut catenary spans the lower
+    chords below ~5.7 N. The paper's catenary (L0 = chord at the chord tensions 0.05 N)
+    refuses with one line; the sag-consistent statics lift those cables' lower bound to the
+    least tension a catenary exists at (with a warning) and balance the platform."""
     flat = read_params_file(CONFIG)
     flat.update({'tension.min_n': 0.05, 'cable.weight_per_length_n_per_m': 2.0})
     settings = settings_from_params(flat)
     eq = equilibrium(settings)
-    with pytest.raises(AnalysisError, match='fails for this scene: cable 0'):
-        analyze_method(settings.replace(method='catenary_exact'), eq, [5.0], 0.1)
-    with pytest.raises(AnalysisError, match='cannot hold its own weight'):
-        analyze_method(settings.replace(method='auto'), eq, [5.0], 0.1)
+    with pytest.raises(AnalysisError, match="fails for this scene: cable 0: no taut elastic "
+                                            "catenary .* the paper's catenary assumes one"):
+        analyze_method(settings.replace(method='catenary'), eq, [5.0], 0.1)
+    doc = analyze_method(settings.replace(method='catenary_exact'), eq, [5.0], 0.1)
+    lower = np.array(doc['tensions_n'][:4])
+    exist = lowest_tension(eq.cables, np.ones(8, bool), settings.tension_max_n)[:4]
+    assert np.all(lower >= EXIST_MARGIN * exist * (1 - 1e-9)) and np.all(exist > 20 * 0.05)
+    assert any('no taut catenary spans its chord below' in w for w in doc['warnings'])
+    assert doc['equilibrium']['relative_residual'] < 1e-9
     config = write_config(tmp_path, **{'tension.min_n': 0.05,
                                        'cable.weight_per_length_n_per_m': 2.0})
-    out = analyze('--config', config, '--method', 'fem_sag', '--json', tmp_path / 'a.json')
+    out = analyze('--config', config, '--method', 'catenary', '--json', tmp_path / 'a.json')
     assert out.returncode == 1
     lines = out.stderr.strip().splitlines()
-    assert len(lines) == 1 and 'method fem_sag fails for this scene' in lines[0]
+    assert len(lines) == 1 and 'method catenary fails for this scene' in lines[0]
 
 
 # --------------------------------------------------------------------------- straight models

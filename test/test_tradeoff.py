@@ -118,3 +118,30 @@ def test_sag_free_scene_uses_dsm_and_fem_converges_to_it(tmp_path):
     assert by[('dsm', 0)]['freq_error_pct'] < 1e-6
     errors = np.array([by[('fem', n)]['freq_error_pct'] for n in (16, 32, 64)])
     assert np.all(np.abs(np.log2(errors[:-1] / errors[1:]) - 2.0) < 0.15), errors
+
+
+def test_chart_caps_errors_above_100_percent_but_the_csv_does_not(tmp_path, monkeypatch):
+    """A model off by 1583 % is drawn at 100 % (a triangle, the value in its label); the CSV
+    and the estimates keep the value."""
+    rows = [{'method': 'spring', 'elements_per_cable': 1, 'dofs': 6, 'freq_error_pct': 100.0,
+             'frf_error_pct': 1583.0, 'time_s': 1e-3, 'estimated_frf_error_pct': 1583.0},
+            {'method': 'fem_sag', 'elements_per_cable': 25, 'dofs': 582,
+             'freq_error_pct': 0.5, 'frf_error_pct': 1.7, 'time_s': 2e-2,
+             'estimated_frf_error_pct': 3.2}]
+    reference = Namespace(f_max_hz=5.0, label='fem_sag n=128/256 Richardson')
+    import matplotlib.axes
+    drawn = []
+    original = matplotlib.axes.Axes.annotate
+
+    def spy(self, text, xy, *args, **kwargs):
+        drawn.append((text, xy[1]))
+        return original(self, text, xy, *args, **kwargs)
+    monkeypatch.setattr(matplotlib.axes.Axes, 'annotate', spy)
+    tradeoff.plot(rows, reference, tmp_path / 'c.png', 'heavy')
+    assert ('spring (1583 %)', tradeoff.CAP_PCT) in drawn and ('fem_sag 25', 1.7) in drawn
+    assert (tmp_path / 'c.png').stat().st_size > 10000
+    tradeoff.write_csv(rows, tmp_path / 'c.csv')
+    with open(tmp_path / 'c.csv', encoding='utf-8') as stream:
+        table = list(csv.DictReader(stream))
+    assert float(table[0]['frf_error_pct']) == 1583.0
+    assert float(table[0]['estimated_frf_error_pct']) == 1583.0

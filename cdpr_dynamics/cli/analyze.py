@@ -18,8 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, Stopwatch, build_system,
-                                    damping_for, damping_warnings, equilibrium, frf_arrays, safe,
-                                    sag_warnings)
+                                    damping_for, damping_warnings, equilibrium, equilibrium_for,
+                                    equilibrium_summary, frf_arrays, geometry_summary,
+                                    model_warnings, safe)
+from cdpr_dynamics.cli import interruptible
 from cdpr_dynamics.config import METHODS, ConfigError, Settings, load_settings
 from cdpr_dynamics.dynamics import tension_change, time_history
 from cdpr_dynamics.models.catenary import sag_parameter
@@ -36,19 +38,22 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
     """
     watch = Stopwatch()
     choice = None
+    method, elements = settings.method, settings.elements_per_cable
     with watch('assembly'):
         if settings.method == 'auto':
             choice = safe(choose_model, settings, eq)
-            system = safe(build_system, settings, eq, choice.method, choice.elements_per_cable)
-        else:
-            system = safe(build_system, settings, eq)
+            method, elements = choice.method, choice.elements_per_cable
+    with watch('statics'):
+        eq = safe(equilibrium_for, settings, eq, method)
+    with watch('assembly'):
+        system = safe(build_system, settings, eq, method, elements)
     assembly = system.assembly
     sag = sag_parameter(eq.cables)
-    warnings = list(assembly.warnings) + sag_warnings(settings, assembly.method, sag)
+    warnings = list(assembly.warnings) + model_warnings(settings, eq, assembly)
     if choice is None:
         warnings += accuracy_warnings(settings, eq, assembly.method, assembly.elements_per_cable)
-    elif choice.estimated_error > settings.tolerance:
-        warnings.append(f'accuracy: {choice.reason}')
+    else:
+        warnings += choice.warnings
     if not assembly.valid:
         raise AnalysisError(f'method {assembly.method} fails for this scene: '
                             + '; '.join(assembly.warnings))
@@ -98,6 +103,8 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
         'tensions_n': eq.tensions.tension_n.tolist(),
         'cable_lengths_m': eq.geometry.length_m.tolist(),
         'sag_parameter': sag.tolist(),
+        'equilibrium': equilibrium_summary(settings, eq),
+        'geometry': geometry_summary(eq),
         'natural_frequencies_hz': freqs.tolist(),
         'damping': {'mass_factor': damping.mass_factor,
                     'stiffness_factor': damping.stiffness_factor,
@@ -217,6 +224,7 @@ def run(args: argparse.Namespace, progress=None) -> dict:
     return result
 
 
+@interruptible('cdpr_analyze')
 def main(argv=None) -> int:
     args = parse_args(argv)
     from tqdm import tqdm

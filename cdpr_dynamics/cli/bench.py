@@ -1,6 +1,7 @@
 """``cdpr_bench``: how long each stage takes, as JSON (timings belong here, not in tests).
 
     cdpr_bench [--config PATH] [--quick] [--dds] [--json PATH]
+    cdpr_bench --workspace [--config PATH] [--quick] [--json PATH]
 
 Stages: tension QP (cold, warm), model build per method and size, a 391-point FRF against a
 naive dense solve of (K + i w C - w^2 M) per frequency measured in the same run, a 1000-step
@@ -23,12 +24,12 @@ import numpy as np
 
 from cdpr_dynamics.analysis import AnalysisError, build_system, damping_for, equilibrium, \
     new_tension_solver
-from cdpr_dynamics.cli import bench_node
+from cdpr_dynamics.cli import bench_node, interruptible
 from cdpr_dynamics.config import ConfigError, Settings, default_config_path, load_settings
 from cdpr_dynamics.dynamics import DynamicsError, frequency_response, time_history
 from cdpr_dynamics.robot import geometry, required_wrench
 
-NODE_METHODS = (('spring', 1), ('catenary', 1), ('fem', 16), ('fem_sag', 16))
+NODE_METHODS = (('spring', 1), ('catenary', 1), ('fem', 16), ('catenary_exact', 1), ('fem_sag', 16))
 SIZES = [('spring', 1), ('fem', 1), ('fem', 4), ('fem', 16), ('fem', 64), ('catenary', 1),
          ('catenary_exact', 1), ('fem_sag', 16), ('dsm', 1)]
 
@@ -202,6 +203,7 @@ def summary(result: dict) -> str:
     return '\n'.join(lines)
 
 
+@interruptible('cdpr_bench')
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='cdpr_bench', description=__doc__.split('\n')[0])
     parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
@@ -210,11 +212,18 @@ def main(argv=None) -> int:
     parser.add_argument('--dds', action='store_true',
                         help='also run dynamics_node as a child process: DDS latency, '
                         'its own compute per wrench, the sustained input rate')
+    parser.add_argument('--workspace', action='store_true',
+                        help='instead: what a cdpr_workspace run costs (poses/s per worker, '
+                        '1 -> 2 worker scaling, engine overhead per chunk size)')
     args = parser.parse_args(argv)
     try:
-        settings = load_settings(args.config)
-        config = args.config or str(default_config_path())
-        result = run(settings, args.quick, config if args.dds else None)
+        if args.workspace:
+            from cdpr_dynamics.cli import bench_workspace
+            result = bench_workspace.run(args.config, args.quick)
+        else:
+            settings = load_settings(args.config)
+            config = args.config or str(default_config_path())
+            result = run(settings, args.quick, config if args.dds else None)
     except (ConfigError, AnalysisError) as exc:
         print(f'cdpr_bench: error: {exc}', file=sys.stderr)
         return 1
@@ -226,6 +235,9 @@ def main(argv=None) -> int:
             print(f'cdpr_bench: error: cannot write {args.json}: {exc.strerror}',
                   file=sys.stderr)
             return 1
+    if args.workspace:
+        print(bench_workspace.summary(result))
+        return 0
     print(summary(result))
     return 0
 

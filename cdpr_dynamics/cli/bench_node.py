@@ -64,13 +64,48 @@ def compute_per_wrench(settings, n: int = 20000) -> dict:
     return result
 
 
-def pose_updates(settings, methods=(('spring', 1), ('catenary', 1), ('fem', 16)),
+def _circle(settings, k: int, n: int) -> np.ndarray:
+    """Point k of n on a 5 cm circle around the initial position (each a rebuild)."""
+    angle = 2 * np.pi * k / n
+    return settings.initial_position_m + 0.05 * np.array([np.cos(angle), np.sin(angle), 0.0])
+
+
+def chord_statics_pose_updates(settings, method: str = 'fem_sag', elements: int = 16,
+                               n: int = 300) -> dict:
+    """The pose update of a sag-aware model linearised at the chord tensions, as the node did
+    before the sag-consistent statics (chord QP, model, factorisation): the baseline of the
+    statics' cost. Not a state the package uses: the chord tensions do not balance sagged
+    cables."""
+    from cdpr_dynamics import models
+    from cdpr_dynamics.analysis import damping_for, equilibrium, new_tension_solver
+    from cdpr_dynamics.dynamics import Newmark, platform_system
+    from cdpr_dynamics.live import DENSE_NEWMARK_DOFS
+
+    solver = new_tension_solver(settings)
+    total = []
+    for k in range(n):
+        start = time.perf_counter()
+        eq = equilibrium(settings, _circle(settings, k, n), None, solver)
+        system = platform_system(settings.robot, eq.geometry,
+                                 models.build(method, eq.cables, elements))
+        stiffness, mass = system.matrices(dense=system.dofs <= DENSE_NEWMARK_DOFS)
+        Newmark(stiffness, mass, damping_for(settings, system), settings.dt_s,
+                settings.newmark_alpha, settings.newmark_beta)
+        total.append(time.perf_counter() - start)
+    result = _percentiles(total[10:])
+    result['dofs'] = system.dofs
+    return result
+
+
+def pose_updates(settings, methods=(('spring', 1), ('catenary', 1), ('fem', 16),
+                                    ('catenary_exact', 1), ('fem_sag', 16)),
                  n: int = 300) -> dict:
-    """Pose update time (tensions + model + factorisation) per method along a slow circle."""
+    """Pose update time (tensions + model + factorisation) per method along a slow circle;
+    sag-aware models include the sag-consistent statics (warm-started pose to pose), and
+    ``fem_sag_n16_chord_statics`` is the same model at the chord tensions for the ratio."""
     from cdpr_dynamics.live import LivePredictor
 
     results = {}
-    centre = settings.initial_position_m
     for method, elements in methods:
         try:
             s = settings.replace(method=method, elements_per_cable=elements)
@@ -80,18 +115,22 @@ def pose_updates(settings, methods=(('spring', 1), ('catenary', 1), ('fem', 16))
             continue
         total, stages = [], {}
         for k in range(n):
-            angle = 2 * np.pi * k / n
-            position = centre + 0.05 * np.array([np.cos(angle), np.sin(angle), 0.0])
+            position = _circle(settings, k, n)
             start = time.perf_counter()
             update = predictor.update_pose(position)
             total.append(time.perf_counter() - start)
             for stage, sec in update.timings_s.items():
                 stages.setdefault(stage, []).append(sec)
-        key = method if method != 'fem' else f'fem_n{elements}'
+        key = f'{method}_n{elements}' if method in ('fem', 'fem_sag') else method
         results[key] = _percentiles(total[10:])
         results[key]['dofs'] = predictor.system.dofs
         results[key]['stages_p50_ms'] = {k: float(np.median(v) * 1e3) for k, v in
                                          stages.items()}
+    if ('fem_sag', 16) in methods:
+        try:
+            results['fem_sag_n16_chord_statics'] = chord_statics_pose_updates(settings, n=n)
+        except Exception as exc:
+            results['fem_sag_n16_chord_statics'] = {'error': str(exc).splitlines()[0]}
     return results
 
 
@@ -114,6 +153,7 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import qos_profile_sensor_data
+    from rclpy.signals import SignalHandlerOptions
 
     from cdpr_dynamics.node_process import start_node, stop_process
     from msg_adapters.diagnostics import read_statuses
@@ -124,7 +164,7 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
     log = open(Path(env['ROS_LOG_DIR']) / 'node.log', 'w')
     proc = start_node(config, env, stdout=log,
                       stderr=subprocess.STDOUT)
-    rclpy.init()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: one line in main
     node = Node('cdpr_bench')
     cond = threading.Condition()
     received, statuses = {}, []
@@ -234,7 +274,7 @@ def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.
     """``cdpr_record`` beside a running node while wrenches flood in at ``rate_hz``: messages
     recorded per second and bytes per message (all child processes, one ROS domain)."""
     from cdpr_dynamics.node_process import start_node, stop_process
-    from cdpr_dynamics.recording import recording_info
+    from cdpr_dynamics.recording.reader import recording_info
 
     reservation, env = _ros_session('record')
     folder = Path(env['ROS_LOG_DIR'])

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cdpr_dynamics.cli import interruptible
 from cdpr_dynamics.config import ConfigError, default_config_path, load_settings
 
 DEMO_TOPICS = ['pose', 'wrench', 'predicted_displacement', 'cable_tensions', '/diagnostics',
@@ -186,7 +187,8 @@ def _start_recorder(node, path):
     overwritten), or None with --no-record."""
     if not path:
         return None
-    from cdpr_dynamics.recording import Recorder, RecordingError
+    from cdpr_dynamics.recording.base import RecordingError
+    from cdpr_dynamics.recording.recorder import Recorder
     try:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         return Recorder(node, path, DEMO_TOPICS)
@@ -286,11 +288,12 @@ def run(args) -> Path:
     controller = None
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
     from rclpy.node import Node
 
     from msg_adapters.frf_service import FrequencyResponseError, call_frequency_response
 
-    rclpy.init()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: main's one line
     node = Node('cdpr_demo')
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -393,6 +396,7 @@ def run(args) -> Path:
     return output
 
 
+@interruptible('cdpr_demo')
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog='cdpr_demo', description='Live vibration prediction demo: the node, a scripted '
@@ -432,9 +436,6 @@ def main(argv=None) -> int:
     except DemoError as exc:
         print(f'cdpr_demo: error: {exc}', file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print('cdpr_demo: interrupted', file=sys.stderr)
-        return 130
     except Exception as exc:  # anything unforeseen: still one line, not a traceback
         text = str(exc).strip().splitlines()
         print(f'cdpr_demo: error: {type(exc).__name__}: {text[0] if text else ""}',

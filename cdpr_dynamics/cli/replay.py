@@ -2,7 +2,7 @@
 
     cdpr_replay INPUT --output PATH [--config PATH] [--method M] [--elements N] [--force]
                 [--pose-topic T] [--wrench-topic T] [--order log|stamp] [--allow-incomplete]
-                [--no-progress]
+                [--skip-bad] [--no-progress]
     cdpr_replay INPUT --live [--rate R] [--subscribers N] [--wait S] [--ros-args ...]
 
 Offline, the inputs go through the same code as ``dynamics_node`` (checks, tension QP, model,
@@ -12,9 +12,11 @@ stderr. The output appears only once complete and an existing one is kept unless
 Live, the recorded pose and wrench messages are republished on ``pose`` and ``wrench`` with
 the recorded timing (``--rate 2``: twice as fast), once a subscriber (the node) is there.
 
-Errors (a missing, truncated or corrupt file, missing topics, a topic of another type, a bad
-config) end with one line and exit status 1; Ctrl-C or SIGTERM ends with status 130 and no
-output file.
+Errors (a missing, truncated or corrupt file, missing topics, a topic of another type, a
+message that does not decode, a bad config) end with one line and exit status 1;
+``--skip-bad`` replays past undecodable input messages and says how many it skipped. Ctrl-C or
+SIGTERM ends with one line, status 130 and no output file (the output is written under a
+temporary name and renamed only when complete).
 """
 from __future__ import annotations
 
@@ -57,6 +59,9 @@ def _parser() -> argparse.ArgumentParser:
                              'them; default) or by header stamp')
     parser.add_argument('--allow-incomplete', action='store_true',
                         help='replay what survives of a file whose recorder was killed')
+    parser.add_argument('--skip-bad', action='store_true',
+                        help='offline: skip input messages that do not decode and count them '
+                             '(default: stop with an error naming the first)')
     parser.add_argument('--rate', type=float, default=1.0, metavar='R',
                         help='live: R times the recorded speed (default 1)')
     parser.add_argument('--subscribers', type=int, default=1, metavar='N',
@@ -97,7 +102,7 @@ class _Bar:
 
 
 def _offline(args) -> int:
-    from cdpr_dynamics.recording import RecordingError
+    from cdpr_dynamics.recording.base import RecordingError
     from cdpr_dynamics.replay import (ReplayError, load_replay_config, replay_offline,
                                       summary_lines)
 
@@ -116,7 +121,7 @@ def _offline(args) -> int:
             args.input, args.output, settings, args.method, bar,
             elements_per_cable=args.elements, options=options, force=args.force,
             pose_topic=args.pose_topic, wrench_topic=args.wrench_topic, order=args.order,
-            allow_incomplete=args.allow_incomplete, parameters=flat)
+            allow_incomplete=args.allow_incomplete, parameters=flat, skip_bad=args.skip_bad)
     except KeyboardInterrupt:
         bar.close()
         return _fail('interrupted; no output written', 130)
@@ -126,6 +131,8 @@ def _offline(args) -> int:
     except OSError as exc:
         bar.close()
         return _fail(f'{getattr(exc, "filename", "") or ""} {exc.strerror or exc}'.strip())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)    # the output is there: say so, whatever
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     bar.close()
     for line in summary_lines(summary):
         print(f'{PROG}: {line}', flush=True)
@@ -137,7 +144,7 @@ def _live(args, argv) -> int:
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
-    from cdpr_dynamics.recording import RecordingError
+    from cdpr_dynamics.recording.base import RecordingError
     from cdpr_dynamics.replay import ReplayError, inspect_input, replay_live, resolve_input
 
     try:   # a bad file fails before anything starts
@@ -189,6 +196,8 @@ def main(argv=None) -> int:
     argv = sys.argv if argv is None else [PROG, *argv]
     args = _parser().parse_args(remove_ros_args(argv)[1:])
     if args.live:
+        if args.skip_bad:
+            return _fail('--skip-bad works offline only (with --output)')
         if args.subscribers < 1:
             return _fail('--subscribers must be at least 1')
         if not (0.0 < args.rate < float('inf')):

@@ -9,7 +9,7 @@ ascending order, a missed mode counting 100 %; the damped FRF of the centroid, m
 error of the complex response over the sweep, which bounds the error of |A|) against the
 compute time (build + FRF + modes in the band, median of ``--repeat`` runs). The reference is
 ``dsm`` where sag is negligible and Richardson-extrapolated ``fem_sag`` where it is not
-(:func:`cdpr_dynamics.selection.reference_solution`); the chart's title says which. The CSV
+(:func:`cdpr_dynamics.reference.reference_solution`); the chart's title says which. The CSV
 also has ``auto``'s estimates of both errors, so the estimates can be read against the truth,
 and the chart marks what ``auto`` picks at ``model.tolerance``.
 
@@ -28,10 +28,12 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.analysis import AnalysisError, equilibrium
+from cdpr_dynamics.cli import interruptible
 from cdpr_dynamics.config import ConfigError, load_settings
 from cdpr_dynamics.dynamics import DynamicsError
-from cdpr_dynamics.selection import (Estimator, SelectionError, choose_model, measure_error,
-                                     reference_solution, solve)
+from cdpr_dynamics.estimates import Estimator
+from cdpr_dynamics.reference import measure_error, reference_solution, solve
+from cdpr_dynamics.selection import SelectionError, choose_model
 
 SWEEP = ([('spring', 1)] + [('fem', n) for n in (1, 2, 4, 8, 16, 32, 64)]
          + [('catenary', 1), ('catenary_exact', 1)]
@@ -40,6 +42,8 @@ COLUMNS = ('method', 'elements_per_cable', 'dofs', 'freq_error_pct', 'frf_error_
            'modes_in_band', 'missed_modes', 'estimated_freq_error_pct',
            'estimated_frf_error_pct', 'valid', 'note')
 FLOOR_PCT = 1e-5      # errors below this are drawn at it (log axes)
+CAP_PCT = 100.0       # errors above this are drawn at it, labelled with their value (the CSV
+                      # and the estimates are not capped)
 
 
 def time_solution(settings, eq, method, n, reference, repeat: int):
@@ -126,7 +130,8 @@ def _label_offsets(times, errors) -> list[tuple[float, float]]:
 def plot(rows: list[dict], reference, path: Path, scene_name: str,
          tolerance: float | None = None) -> None:
     """Two log-log panels (frequency error, FRF error) against time, Pareto fronts marked,
-    the row ``auto`` picked (at ``tolerance``) starred."""
+    the row ``auto`` picked (at ``tolerance``) starred; errors capped at :data:`CAP_PCT` for
+    the drawing only (a triangle, the value in its label)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -139,11 +144,14 @@ def plot(rows: list[dict], reference, path: Path, scene_name: str,
     times = 1e3 * np.array([r['time_s'] for r in ok])
     for ax, key, what in ((axes[0], 'freq_error_pct', 'natural frequencies in the band'),
                           (axes[1], 'frf_error_pct', 'damped FRF of the centroid')):
-        errors = np.maximum([r[key] for r in ok], FLOOR_PCT)
-        for r, t, e, offset in zip(ok, times, errors, _label_offsets(times, errors)):
-            ax.scatter(t, e, color=colors.get(r['method'], 'tab:purple'), s=28, zorder=3)
-            ax.annotate(label(r), (t, e), textcoords='offset points', xytext=offset,
-                        fontsize=7)
+        values = np.array([r[key] for r in ok], dtype=float)
+        errors = np.clip(values, FLOOR_PCT, CAP_PCT)
+        for r, t, e, v, offset in zip(ok, times, errors, values,
+                                      _label_offsets(times, errors)):
+            ax.scatter(t, e, color=colors.get(r['method'], 'tab:purple'), s=28, zorder=3,
+                       marker='^' if v > CAP_PCT else 'o')
+            ax.annotate(label(r) + (f' ({v:.0f} %)' if v > CAP_PCT else ''), (t, e),
+                        textcoords='offset points', xytext=offset, fontsize=7)
         front = pareto(times, errors)
         ax.step(times[front], errors[front], where='post', color='tab:orange', lw=1.5,
                 zorder=2, label='Pareto front')
@@ -162,6 +170,8 @@ def plot(rows: list[dict], reference, path: Path, scene_name: str,
         ax.legend(loc='lower left', fontsize=8)
     axes[0].text(0.99, 0.99, '100 % = modes missed', transform=axes[0].transAxes,
                  ha='right', va='top', fontsize=7, color='0.4')
+    axes[1].text(0.99, 0.99, 'triangles: off by more than 100 % (value in the label)',
+                 transform=axes[1].transAxes, ha='right', va='top', fontsize=7, color='0.4')
     fig.suptitle(f'{scene_name}: error over 0-{reference.f_max_hz:g} Hz against '
                  f'{reference.label}', fontsize=10)
     fig.tight_layout()
@@ -214,6 +224,7 @@ def run(args: argparse.Namespace, progress=None):
     return settings, reference, choice, rows
 
 
+@interruptible('cdpr_tradeoff')
 def main(argv=None) -> int:
     args = parse_args(argv)
     from tqdm import tqdm

@@ -27,7 +27,10 @@ class CableSet:
     """The cables at one state, stacked over cables (first axis n); SI units.
 
     ``chord_m`` points from the platform attachment to the anchor (world frame);
-    ``tension_n`` is the tension at the platform end from the tension distribution.
+    ``tension_n`` is the tension at the platform end from the tension distribution;
+    ``sag_state`` the elastic catenaries at these tensions where the statics already solved
+    them (a :class:`cdpr_dynamics.models.catenary.CatenaryState`, reused by the sag-aware
+    models), else None.
     """
 
     chord_m: np.ndarray
@@ -35,6 +38,7 @@ class CableSet:
     ea_n: float
     weight_per_length_n_per_m: float
     gravity_m_s2: np.ndarray
+    sag_state: object = None
 
     @property
     def n_cables(self) -> int:

@@ -74,11 +74,10 @@ from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse
 # --------------------------------------------------------------------------- closed forms
 
 def _asinhc(x):
-    """asinh(x)/x, with its series near 0 (x >= 0)."""
-    x = np.asarray(x, dtype=float)
-    small = x < 1e-4
-    safe = np.where(small, 1.0, x)
-    return np.where(small, 1.0 - x * x / 6.0 + 0.075 * x ** 4, np.arcsinh(safe) / safe)
+    """asinh(x)/x for x >= 0 (numpy's asinh keeps full relative precision near 0: the quotient
+    equals the series 1 - x^2/6 + 3 x^4/40 there to 1e-16; x = 0 gives 1)."""
+    x = np.maximum(x, 1e-300)
+    return np.arcsinh(x) / x
 
 
 class _Parts(NamedTuple):
@@ -99,17 +98,16 @@ def _parts(force, length, gamma, up) -> _Parts:
     force = np.asarray(force, dtype=float)
     length = np.asarray(length, dtype=float)
     up = np.asarray(up, dtype=float)
-    v = np.sum(force * up, axis=-1)
+    v = force @ up if up.ndim == 1 else np.einsum('...i,...i->...', force, up)
     h_vec = force - v[..., None] * up
-    h2 = np.sum(h_vec * h_vec, axis=-1)
+    h2 = np.einsum('...i,...i->...', h_vec, h_vec)
     a0, a1 = v, v - gamma * length
     t_b = np.sqrt(h2 + a0 * a0)
     t_a = np.sqrt(h2 + a1 * a1)
     same = a0 * a1 > 0.0
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        p_same = (a0 + a1) / np.where(same, a0 * t_a + a1 * t_b, 1.0)
-        p_cross = (h2 + t_a * t_b - a0 * a1) / ((t_a + t_b) * h2)
-        p = np.where(same, p_same, p_cross)
+        p = np.where(same, (a0 + a1) / (a0 * t_a + a1 * t_b),
+                     (h2 + t_a * t_b - a0 * a1) / ((t_a + t_b) * h2))
         s = length * (a0 + a1) / (t_a + t_b)
         q = length * p * _asinhc(gamma * length * p)
     # lowest tension: at an end, or H where the tangent is horizontal inside the cable
@@ -132,11 +130,14 @@ def end_position(force, unstrained_length, ea, gamma, up) -> np.ndarray:
     return elastic + r.q[..., None] * r.h_vec + r.s[..., None] * up
 
 
-def flexibility(force, unstrained_length, ea, gamma, up) -> np.ndarray:
-    """dl/dF of :func:`end_position` (Eq. 29 corrected), symmetric (..., 3, 3) in m/N."""
+def flexibility(force, unstrained_length, ea, gamma, up, parts: _Parts | None = None
+                ) -> np.ndarray:
+    """dl/dF of :func:`end_position` (Eq. 29 corrected), symmetric (..., 3, 3) in m/N.
+
+    ``parts``: :func:`_parts` of the same arguments where the caller has them already."""
     up = np.asarray(up, dtype=float)
     length = np.asarray(unstrained_length, dtype=float)
-    r = _parts(force, length, gamma, up)
+    r = _parts(force, length, gamma, up) if parts is None else parts
     ee = up[..., :, None] * up[..., None, :]
     hh = r.h_vec[..., :, None] * r.h_vec[..., None, :]
     he = r.h_vec[..., :, None] * up[..., None, :]
@@ -211,13 +212,17 @@ def _residual(force, length, target, tension, ea, gamma, up, scale):
 
 
 def solve(cables: CableSet, max_iterations: int = 60,
-          min_tension_ratio: float = 1e-6) -> CatenaryState:
+          min_tension_ratio: float = 1e-6, start: CatenaryState | None = None,
+          max_halvings: int = 30) -> CatenaryState:
     """Newton on (F, L0) per cable: the end closes on the chord and |F| = T_i.
 
-    Starts from the straight taut cable (F = -T u, L0 = L/(1 + T/EA)), damped by step halving.
+    Starts from the straight taut cable (F = -T u, L0 = L/(1 + T/EA)), or from ``start`` (a
+    nearby solution, e.g. of the previous pose or tension: its end-force direction and L0, the
+    force rescaled to |F| = T_i) where that cable was valid; damped by step halving.
     A cable is invalid when T_i <= 0, when Newton does not converge (no catenary with that end
     tension spans the chord) or when the tension somewhere along it is below
-    ``min_tension_ratio`` times T_i (slack: it cannot hold its own weight).
+    ``min_tension_ratio`` times T_i (slack: it cannot hold its own weight). ``max_iterations``
+    and ``max_halvings`` (of each Newton step) bound the work, e.g. for cheap existence probes.
     """
     up, gamma = up_and_weight(cables)
     ea = float(cables.ea_n)
@@ -232,12 +237,17 @@ def solve(cables: CableSet, max_iterations: int = 60,
     scale = length
     force = -t_safe[:, None] * unit
     l0 = length / (1.0 + t_safe / ea)
+    if start is not None:
+        warm = start.valid & live
+        direction = start.force_n / np.linalg.norm(start.force_n, axis=1)[:, None]
+        force = np.where(warm[:, None], t_safe[:, None] * direction, force)
+        l0 = np.where(warm, start.unstrained_length_m, l0)
     res = _residual(force, l0, target, t_safe, ea, gamma, up, scale)
     norm = np.linalg.norm(res, axis=1)
     tol = 1e-13 * np.maximum(length, 1.0)
     with np.errstate(all='ignore'):       # trial states past slack give inf/nan: rejected
         force, l0, res, iterations = _newton(force, l0, res, norm, tol, live, target, t_safe, ea,
-                                             gamma, up, scale, max_iterations)
+                                             gamma, up, scale, max_iterations, max_halvings)
         _, t_a, t_min = tensions(force, l0, gamma, up)
     residual = np.linalg.norm(res[:, :3], axis=1)
     residual = np.where(np.isfinite(residual), residual, np.inf)
@@ -264,8 +274,45 @@ def solve(cables: CableSet, max_iterations: int = 60,
                          valid, tuple(reasons))
 
 
+def _jacobian(force, l0, ea, gamma, up, row_scale) -> np.ndarray:
+    """(n, 4, 4) derivative of (end position, row_scale |F|) with respect to (F, L0).
+
+    d l = C dF + (1/EA + 1/T_A) (F - gamma L0 e) dL0 (C of :func:`flexibility`; F - gamma L0 e
+    is the tension vector at A) and d|F| = F.dF/|F|.
+    """
+    r = _parts(force, l0, gamma, up)
+    jac = np.zeros(force.shape[:-1] + (4, 4))
+    jac[..., :3, :3] = flexibility(force, l0, ea, gamma, up, r)
+    tangent_a = force - (gamma * l0)[..., None] * up            # d l / d L0 (tension at A)
+    jac[..., :3, 3] = tangent_a * (1.0 / ea + 1.0 / r.t_a)[..., None]
+    jac[..., 3, :3] = (row_scale / r.t_b)[..., None] * force
+    return jac
+
+
+def tension_sensitivity(state: CatenaryState, cables: CableSet) -> tuple[np.ndarray, np.ndarray]:
+    """(dF/dT (n, 3), dL0/dT (n,)): how each solved catenary changes with its end tension.
+
+    The chord is held: C dF + (dl/dL0) dL0 = 0 and F.dF/|F| = dT (the 4x4 system of
+    :func:`_jacobian`). The force on the platform changes by -dF/dT per newton of end tension:
+    along the end tangent by 1, plus a turn of the tangent as the sag changes. Finite only for
+    valid cables away from the fold where T stops falling as L0 grows (NaN elsewhere).
+    """
+    up, gamma = up_and_weight(cables)
+    n = state.force_n.shape[0]
+    jac = _jacobian(state.force_n, state.unstrained_length_m, float(cables.ea_n), gamma, up,
+                    np.ones(n))
+    rhs = np.zeros((n, 4))
+    rhs[:, 3] = 1.0
+    out = np.full((n, 4), np.nan)
+    ok = state.valid & np.all(np.isfinite(jac), axis=(1, 2))
+    ok &= np.abs(np.linalg.det(np.where(ok[:, None, None], jac, np.eye(4)))) > 0.0
+    if np.any(ok):
+        out[ok] = np.linalg.solve(jac[ok], rhs[ok][..., None])[..., 0]
+    return out[:, :3], out[:, 3]
+
+
 def _newton(force, l0, res, norm, tol, live, target, t_safe, ea, gamma, up, scale,
-            max_iterations):
+            max_iterations, max_halvings=30):
     """Damped Newton iterations of :func:`solve` (vectorised over cables)."""
     n = force.shape[0]
     iterations = 0
@@ -273,12 +320,7 @@ def _newton(force, l0, res, norm, tol, live, target, t_safe, ea, gamma, up, scal
         todo = live & (norm > tol)
         if not np.any(todo):
             break
-        r = _parts(force, l0, gamma, up)
-        jac = np.zeros((n, 4, 4))
-        jac[:, :3, :3] = flexibility(force, l0, ea, gamma, up)
-        tangent_a = force - (gamma * l0)[:, None] * up           # d l / d L0 (tension at A)
-        jac[:, :3, 3] = tangent_a * (1.0 / ea + 1.0 / r.t_a)[:, None]
-        jac[:, 3, :3] = (scale / (t_safe * r.t_b))[:, None] * force
+        jac = _jacobian(force, l0, ea, gamma, up, scale / t_safe)
         ok = todo & np.all(np.isfinite(jac), axis=(1, 2))
         step = np.zeros((n, 4))
         for i in ([ok] if np.any(ok) else []):
@@ -293,7 +335,7 @@ def _newton(force, l0, res, norm, tol, live, target, t_safe, ea, gamma, up, scal
         alpha = np.ones(n)
         new_force, new_l0, new_res = force, l0, res
         improve = np.zeros(n, dtype=bool)
-        for _ in range(30):
+        for _ in range(max_halvings):
             trial_f = force + alpha[:, None] * step[:, :3]
             trial_l = l0 + alpha * step[:, 3]
             trial_r = _residual(trial_f, np.where(trial_l > 0, trial_l, l0), target, t_safe, ea,
@@ -351,11 +393,17 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     length = cables.length_m
     force = -tension[:, None] * cables.unit
     t_min = tensions(force, length, gamma, up)[2]
-    ok = (tension > 0) & (t_min > 1e-6 * np.abs(tension))
+    exists = solve(cables).valid if gamma > 0 else tension > 0
+    ok = (tension > 0) & (t_min > 1e-6 * np.abs(tension)) & exists
     warnings = []
     for i in np.flatnonzero(~ok):
         if not tension[i] > 0:
             warnings.append(f'cable {i} is slack (T = {tension[i]:.3g} N <= 0)')
+        elif not exists[i]:
+            warnings.append(f'cable {i}: no taut elastic catenary with end tension '
+                            f'{tension[i]:.3g} N spans its chord of {length[i]:.4g} m (cable '
+                            f'weight {gamma * length[i]:.3g} N): the paper\'s catenary assumes '
+                            'one that cannot exist')
         else:
             warnings.append(f'cable {i} is slack: tension {tension[i]:.3g} N at the platform '
                             f'cannot hold the {gamma * length[i]:.3g} N cable hanging below it')
@@ -363,9 +411,27 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
                              tension[:, None] * cables.unit, bool(np.all(ok)), warnings)
 
 
+def paper_misclosure(cables: CableSet) -> np.ndarray:
+    """(n,) m: how far the paper's assumed catenary (L0 = chord, end force T_i along the chord)
+    ends from the anchor, |l(F, L0) - l_chord| of Eq. 25; 0 for weightless cables up to the
+    elastic stretch T L/EA that L0 = chord leaves out."""
+    up, gamma = up_and_weight(cables)
+    tension = np.maximum(np.asarray(cables.tension_n, dtype=float), 0.0)
+    force = -tension[:, None] * cables.unit
+    with np.errstate(all='ignore'):
+        end = end_position(force, cables.length_m, float(cables.ea_n), gamma, up)
+    return np.linalg.norm(end + np.asarray(cables.chord_m), axis=1)
+
+
+def state_of(cables: CableSet) -> CatenaryState:
+    """The catenaries of ``cables``: those the statics solved (``cables.sag_state``), or solved
+    here at ``cables.tension_n``."""
+    return cables.sag_state if cables.sag_state is not None else solve(cables)
+
+
 def build_exact(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     """``catenary_exact``: Newton-consistent L0 and end force per cable (see :func:`solve`)."""
-    state = solve(cables)
+    state = state_of(cables)
     stiffness = _stiffness(state.force_n, state.unstrained_length_m, cables, state.valid)
     return massless_assembly('catenary_exact', stiffness, -state.force_n,
                              bool(np.all(state.valid)), state.reasons)

@@ -110,7 +110,7 @@ def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = 
 
     Returns (ChainBlocks, element data for :func:`series_end_stiffness`, CatenaryState).
     """
-    state = catenary.solve(cables) if state is None else state
+    state = catenary.state_of(cables) if state is None else state
     up, gamma = catenary.up_and_weight(cables)
     chord = np.asarray(cables.chord_m, dtype=float)
     with np.errstate(all='ignore'):          # invalid cables: replaced just below
