@@ -16,8 +16,8 @@ from cdpr_dynamics.dynamics import (Damping, DynamicsError, PlatformSystem, conf
 from cdpr_dynamics.feasibility import cable_crossing
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.models.catenary import (end_position, paper_misclosure, sag_parameter,
-                                          up_and_weight)
-from cdpr_dynamics.robot import Geometry, GeometryError, geometry, required_wrench
+                                           up_and_weight)
+from cdpr_dynamics.robot import Geometry, GeometryError, geometry, required_wrench, skew
 from cdpr_dynamics.selection import choose_model
 from cdpr_dynamics.statics import Equilibrium, StaticsError, equilibrium_for
 from cdpr_dynamics.tensions import TensionSolver
@@ -231,26 +231,100 @@ def model_warnings(settings: Settings, eq: Equilibrium, assembly) -> list[str]:
     return warnings
 
 
+ROTATION_ARRAYS = ('rotation_x_rad', 'rotation_y_rad', 'rotation_z_rad')
+MODE_ARRAYS = ('platform_natural_frequencies_hz', 'mode_platform_fraction')
 FRF_ARRAYS = ('frequency_hz', 'amplitude_x_m', 'amplitude_y_m', 'amplitude_z_m', 'phase_x_rad',
-              'phase_y_rad', 'phase_z_rad', 'log10_amplitude_z', 'natural_frequencies_hz')
+              'phase_y_rad', 'phase_z_rad', 'log10_amplitude_z',
+              'natural_frequencies_hz') + ROTATION_ARRAYS + MODE_ARRAYS
+POINT_MASS_ROTATION = 'a point-mass platform has no rotation DOFs'
+DSM_MODES = 'dsm modes (Wittrick-Williams) are not classified: use fem or fem_sag'
 
 
-def frf_arrays(settings: Settings, system: PlatformSystem) -> dict[str, np.ndarray]:
-    """The FRF arrays of the service contract (SPEC section 5) for the settings' sweep."""
-    damping = damping_for(settings, system)
+def point_map(rotation: np.ndarray, point_m, platform_dofs: int) -> np.ndarray:
+    """(3, ndof) map of the platform DOFs q = (u, theta) to the displacement of a point.
+
+    d = u + theta x r = [I, -[r]x] q with r = R b the point ``point_m`` (b, platform frame,
+    m) in the world frame; a point-mass platform (3 DOFs) moves every point by u.
+    """
+    out = np.zeros((3, platform_dofs))
+    out[:, :3] = np.eye(3)
+    if platform_dofs == 6:
+        out[:, 3:] = -skew(np.asarray(rotation, dtype=float) @ np.asarray(point_m, dtype=float))
+    return out
+
+
+def point_displacement(q, rotation: np.ndarray, point_m) -> np.ndarray:
+    """Displacement (..., 3) of the point ``point_m`` (platform frame, m) for platform
+    DOFs ``q`` (..., ndof): u + theta x (R b); exactly u where b = 0."""
+    q = np.asarray(q)
+    if q.shape[-1] == 3 or not np.any(point_m):
+        return q[..., :3].copy()
+    out = np.einsum('ia,...a->...i', point_map(rotation, point_m, q.shape[-1]), q)
+    singular = ~np.all(np.isfinite(q), axis=-1)         # an undamped resonance: inf, not nan
+    out[singular] = np.inf
+    return out
+
+
+def receptance(system: PlatformSystem, frequency_hz, damping) -> np.ndarray:
+    """H(w) = Z(w)^-1 (nf, ndof, ndof) complex: platform-DOF response per unit force (N) and
+    moment (N m), m/N, m/(N m), rad/N, rad/(N m); inf where Z(w) is singular (undamped, at a
+    resonance). Symmetric (reciprocity): Z is."""
+    f = np.atleast_1d(np.asarray(frequency_hz, dtype=float))
+    nd = system.platform_dofs
+    columns = [frequency_response(system, f, np.eye(6)[j, :3], np.eye(6)[j, 3:],
+                                  damping=damping) for j in range(nd)]
+    return np.stack([c.response for c in columns], axis=2)
+
+
+def frf_response(settings: Settings, system: PlatformSystem, damping=None):
+    """The platform-DOF response (nf, ndof) to ``frf.force_n`` and ``frf.moment_nm`` over the
+    settings' sweep, and the point ``frf.point_m``'s translation (nf, 3)."""
+    damping = damping_for(settings, system) if damping is None else damping
     response = frequency_response(system, settings.frequencies_hz, settings.frf_force_n,
-                                  damping=damping)
-    amplitude, phase = response.amplitude_m, response.phase_rad
+                                  settings.frf_moment_nm, damping=damping)
+    point = point_displacement(response.response, system.geometry.rotation,
+                               settings.frf_point_m)
+    return response, point
+
+
+def system_modes(settings: Settings, system: PlatformSystem):
+    """Classified modes (:func:`cdpr_dynamics.modes.modes`) up to ``frf.f_max_hz``, at least
+    the 12 lowest; None for ``dsm`` (no finite matrices)."""
+    from cdpr_dynamics.modes import modes
+    if system.assembly.blocks is None:
+        return None
+    return modes(system, settings.f_max_hz)
+
+
+def frf_arrays(settings: Settings, system: PlatformSystem) -> dict:
+    """The FRF arrays of the service contract (SPEC section 5) for the settings' sweep.
+
+    Amplitudes and phases are those of ``frf.point_m`` (u + theta x R b); rotations (6-DOF
+    platforms) of the platform; a name whose array cannot exist maps to its reason (str).
+    """
+    response, point = frf_response(settings, system)
+    amplitude, phase = np.abs(point), np.angle(point)
     with np.errstate(divide='ignore'):
         log_z = np.log10(amplitude[:, 2])
-    return {
+    found = system_modes(settings, system)
+    arrays = {
         'frequency_hz': response.frequency_hz,
         'amplitude_x_m': amplitude[:, 0], 'amplitude_y_m': amplitude[:, 1],
         'amplitude_z_m': amplitude[:, 2],
         'phase_x_rad': phase[:, 0], 'phase_y_rad': phase[:, 1], 'phase_z_rad': phase[:, 2],
         'log10_amplitude_z': log_z,
-        'natural_frequencies_hz': natural_frequencies(system, 12),
     }
+    if found is None:
+        arrays['natural_frequencies_hz'] = natural_frequencies(system, 12)
+        arrays.update(dict.fromkeys(MODE_ARRAYS, DSM_MODES))
+    else:
+        arrays['natural_frequencies_hz'] = found.frequency_hz
+        arrays['platform_natural_frequencies_hz'] = found.platform_hz
+        arrays['mode_platform_fraction'] = found.platform_fraction
+    for axis, name in enumerate(ROTATION_ARRAYS):
+        arrays[name] = (np.abs(response.response[:, 3 + axis]) if system.platform_dofs == 6
+                        else POINT_MASS_ROTATION)
+    return arrays
 
 
 class Stopwatch:

@@ -104,6 +104,10 @@ PARAMETERS: tuple[Param, ...] = (
     Param('frf.n_points', 391, 'frequencies in the sweep', 1, 1000000),
     Param('frf.force_n', [0.0, 0.0, 1500.0], 'harmonic force amplitude on the platform (N)',
           length=3),
+    Param('frf.moment_nm', [0.0, 0.0, 0.0], 'harmonic moment amplitude on the platform (N m)',
+          length=3),
+    Param('frf.point_m', [0.0, 0.0, 0.0], 'point whose FRF and time history are reported '
+          '(m, platform frame; zero: the centroid)', length=3),
     Param('newmark.alpha', 0.5, 'Newmark alpha (gamma in most texts)', 0.0, 10.0),
     Param('newmark.beta', 0.25, 'Newmark beta', 0.0, 10.0),
     Param('newmark.dt_s', 0.001, 'Newmark time step (s)', 1e-9, 10.0),
@@ -144,6 +148,8 @@ NODE_PARAMETERS: tuple[Param, ...] = (
           'order, rejected (s)', 0.0, 1e9),
     Param('node.zero_stamp', 'reject', 'unstamped inputs (stamp 0): reject, or time them by '
           'their arrival', choices=('reject', 'arrival')),
+    Param('node.output_point_m', [0.0, 0.0, 0.0], 'point whose predicted displacement and '
+          'pose are published (m, platform frame; zero: the centroid)', length=3),
 )
 NODE_PARAMETER_BY_NAME = {p.name: p for p in NODE_PARAMETERS}
 #: Parameters every rclpy node has; a params file may set them.
@@ -196,6 +202,8 @@ class Settings:
     newmark_alpha: float
     newmark_beta: float
     dt_s: float
+    frf_moment_nm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    frf_point_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
     @property
     def frequencies_hz(self) -> np.ndarray:
@@ -585,7 +593,8 @@ def settings_from_params(flat: dict) -> Settings:
         damping_stiffness_factor=v['damping.stiffness_factor'],
         damping_modal_ratio=v['damping.modal_ratio'],
         f_min_hz=v['frf.f_min_hz'], f_max_hz=v['frf.f_max_hz'], n_points=v['frf.n_points'],
-        frf_force_n=v['frf.force_n'],
+        frf_force_n=v['frf.force_n'], frf_moment_nm=v['frf.moment_nm'],
+        frf_point_m=v['frf.point_m'],
         newmark_alpha=v['newmark.alpha'], newmark_beta=v['newmark.beta'], dt_s=v['newmark.dt_s'],
     )
     _check_settings(settings)

@@ -358,8 +358,9 @@ class TimeHistory:
 
 def time_history(system: PlatformSystem, force_n, excitation_hz: float, duration_s: float,
                  damping: Damping, dt_s: float = 1e-3, alpha: float = 0.5,
-                 beta: float = 0.25, progress=None) -> TimeHistory:
-    """Response from rest to ``force_n sin(2 pi f t)`` on the platform, Newmark steps of dt.
+                 beta: float = 0.25, progress=None, moment_nm=(0.0, 0.0, 0.0)) -> TimeHistory:
+    """Response from rest to ``force_n sin(2 pi f t)`` on the platform, Newmark steps of dt
+    (and ``moment_nm sin(2 pi f t)`` on a rigid platform's rotations).
 
     ``progress`` optionally wraps the step range (e.g. a tqdm progress bar).
     """
@@ -370,6 +371,7 @@ def time_history(system: PlatformSystem, force_n, excitation_hz: float, duration
     load = np.zeros(k.shape[0])
     load[:3] = force_n
     nd = system.platform_dofs
+    load[3:nd] = np.asarray(moment_nm, dtype=float)[:nd - 3]
     u = np.zeros((steps + 1, nd))
     w = 2.0 * np.pi * excitation_hz
     for i in (progress or iter)(range(1, steps + 1)):

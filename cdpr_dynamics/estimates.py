@@ -133,7 +133,7 @@ class Estimator:
         self._truth_modes_ends = true_end_stiffness(self.scene, self.mode_omega ** 2)
         self._straight_frf_ends = straight_end_stiffness(eq.cables, None, self.lam)
         self._straight_modes_ends = straight_end_stiffness(eq.cables, None,
-                                                            self.mode_omega ** 2)
+                                                           self.mode_omega ** 2)
 
     def _platform_modes(self) -> None:
         """Modes of the spring model on the platform DOFs that lie in (or near) the band, their

@@ -24,7 +24,7 @@ import scipy.sparse.linalg as spla
 
 from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, build_system, damping_for,
                                     equilibrium, equilibrium_for, model_warnings,
-                                    new_tension_solver)
+                                    new_tension_solver, point_displacement)
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.dynamics import DynamicsError, Newmark, PlatformSystem
 from cdpr_dynamics.feasibility import WrenchSet
@@ -51,6 +51,31 @@ class PoseUpdate:
     timings_s: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
     sag_parameter: tuple[float, ...] = ()     # Irvine's lambda^2 per cable
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """The predicted state of a point of the platform (SPEC section 5).
+
+    ``displacement_m`` (3,): its displacement from equilibrium, u + theta x R b;
+    ``position_m`` (3,): its predicted position p + R b + displacement; ``quaternion`` (4,)
+    qx qy qz qw: the platform's predicted orientation, the small rotation theta (world frame)
+    composed with the equilibrium orientation, exp([theta]x) R (R for a point mass).
+    """
+
+    displacement_m: np.ndarray
+    position_m: np.ndarray
+    quaternion: np.ndarray
+
+
+def rotated_quaternion(rotation: np.ndarray, theta_rad) -> np.ndarray:
+    """Quaternion (qx, qy, qz, qw) of exp([theta]x) R: the rotation vector ``theta_rad``
+    (world frame, rad) applied after ``rotation``; exactly R's quaternion for theta = 0."""
+    from scipy.spatial.transform import Rotation
+    base = Rotation.from_matrix(rotation)
+    if not np.any(theta_rad):
+        return base.as_quat()
+    return (Rotation.from_rotvec(np.asarray(theta_rad, dtype=float)) * base).as_quat()
 
 
 class LivePredictor:
@@ -104,7 +129,7 @@ class LivePredictor:
         start = time.perf_counter()
         eq, system, warnings = self._build(eq)
         timings['model'] = time.perf_counter() - start
-        s = self.settings        # the wrenches the cables can hold here (per state, not per wrench)
+        s = self.settings    # the wrenches the cables can hold here (per state, not per wrench)
         wrench_set = WrenchSet(_tangent_structure(eq), s.tension_min_n, s.tension_max_n,
                                required_wrench(s.robot, s.external_force_n, s.external_moment_nm))
         start = time.perf_counter()
@@ -129,8 +154,9 @@ class LivePredictor:
         s = self.settings
         if s.method != 'auto':
             return s
-        moved = (self._choice is None or np.linalg.norm(eq.geometry.position_m
-                                                         - self._choice_position) > AUTO_RECHOOSE_M)
+        moved = (self._choice is None
+                 or np.linalg.norm(eq.geometry.position_m - self._choice_position)
+                 > AUTO_RECHOOSE_M)
         if moved:
             self._choice = choose_model(s, eq)
             self._choice_position = eq.geometry.position_m
@@ -245,6 +271,17 @@ class LivePredictor:
         self._t_ns = stamp_ns
         self._load = load
         return self.integrator.u[:3].copy()
+
+    def prediction(self, point_m=(0.0, 0.0, 0.0)) -> Prediction:
+        """The integrator's current state at the point ``point_m`` (platform frame, m):
+        :class:`Prediction`; the default (the centroid) gives :meth:`advance`'s displacement."""
+        nd = self.system.platform_dofs
+        q = self.integrator.u[:nd]
+        displacement = point_displacement(q, self.rotation, point_m)
+        arm = self.rotation @ np.asarray(point_m, dtype=float)
+        theta = q[3:6] if nd == 6 else np.zeros(3)
+        return Prediction(displacement, self.position_m + arm + displacement,
+                          rotated_quaternion(self.rotation, theta))
 
     def rebase_time(self) -> None:
         """Take the next wrench's stamp as the new time origin, keeping the state of motion

@@ -3,7 +3,8 @@
     ros2 run cdpr_dynamics dynamics_node --ros-args --params-file config/paper_cdpr.yaml
 
 Subscribes ``pose`` (PoseStamped) and ``wrench`` (WrenchStamped), sensor-data QoS; publishes
-``predicted_displacement`` (Vector3Stamped, stamped with the wrench's stamp), ``cable_tensions``
+``predicted_displacement`` (Vector3Stamped, stamped with the wrench's stamp) and
+``predicted_pose`` (PoseStamped, same stamp) of ``node.output_point_m``, ``cable_tensions``
 (JointState: position = length m, effort = tension N; transient local, one per accepted pose)
 and ``/diagnostics``; serves ``frequency_response`` (rcl_interfaces/srv/GetParameters).
 
@@ -48,7 +49,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from sensor_msgs.msg import JointState
 
 from cdpr_dynamics.analysis import (AnalysisError, build_system, damping_for, damping_warnings,
-                                    equilibrium_summary, frf_arrays, safe)
+                                    equilibrium_summary, frf_arrays, safe, system_modes)
 from cdpr_dynamics.config import (NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS,
                                   ROS_NODE_PARAMETERS, ConfigError, Param, check_names,
                                   check_params, check_problem_size, check_value,
@@ -61,6 +62,7 @@ from msg_adapters.displacement import displacement_message
 from msg_adapters.frf_service import (ARRAYS, pack_response, parse_request, response_size_error,
                                       settings_changes)
 from msg_adapters.joint_state import tensions_message
+from msg_adapters.pose import pose_message
 from msg_adapters.inputs import NUMERIC_ERRORS, InputHandler, first_line
 from msg_adapters.stamps import StampPolicy
 from msg_adapters.validation import InvalidMessage, clip, ns_to_stamp, s_to_stamp, stamp_to_ns
@@ -223,6 +225,8 @@ class DynamicsNode(Node):
                      'last_error': ''}
         self._modal_warnings: list[str] = []
         self._lowest_hz = float('nan')
+        self._platform_hz = np.zeros(0)     # classified platform modes up to frf.f_max_hz
+        self._modal_stale = False           # a rebuild since: refreshed before diagnostics
         logger = self.get_logger()
         self.pose_health = InputHealth(logger.get_child('pose'), diag.ERROR)
         self.wrench_health = InputHealth(logger.get_child('wrench'), diag.WARN)
@@ -237,6 +241,7 @@ class DynamicsNode(Node):
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.displacement_pub = self.create_publisher(Vector3Stamped, 'predicted_displacement',
                                                       10)
+        self.pose_pub = self.create_publisher(PoseStamped, 'predicted_pose', 10)
         self.tensions_pub = self.create_publisher(JointState, 'cable_tensions', latched)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.pose_sub = self.create_subscription(PoseStamped, 'pose', self.on_pose,
@@ -411,15 +416,18 @@ class DynamicsNode(Node):
         """Advance the integrator to the wrench's stamp and publish the prediction."""
         start = time.perf_counter()
         try:
-            u = self.inputs.wrench(msg, self.get_clock().now().nanoseconds)
+            self.inputs.wrench(msg, self.get_clock().now().nanoseconds)
         except InvalidMessage as exc:
             self._reject(self.wrench_health, exc.kind, str(exc))
             return
         stamp = msg.header.stamp if self.inputs.last_wrench_ns == stamp_to_ns(msg.header.stamp) \
             else ns_to_stamp(self.inputs.last_wrench_ns)     # an unstamped one: its arrival
-        prediction = displacement_message(u, self.frame_id, stamp)
+        out = self.predictor.prediction(self._flat['node.output_point_m'])
+        prediction = displacement_message(out.displacement_m, self.frame_id, stamp)
+        pose = pose_message(out.position_m, out.quaternion, self.frame_id, stamp)
         computed = time.perf_counter()
         self.displacement_pub.publish(prediction)
+        self.pose_pub.publish(pose)
         if self.wrench_health.accept():
             self._diag_dirty = True
         if self.inputs.notice:
@@ -438,6 +446,7 @@ class DynamicsNode(Node):
         self._rebuilds += 1
         self._frf_cache.clear()
         self._rebuild_s.append(sum(update.timings_s.values()))
+        self._modal_stale = True
         self._diag_dirty = True
         self._log_model_warnings()
 
@@ -470,11 +479,18 @@ class DynamicsNode(Node):
         self.predictor.advance(round(self.settings.dt_s * 1e9), np.zeros(3))
         self.predictor.reset_time()
         displacement_message(np.zeros(3), self.frame_id, s_to_stamp(0.0))
+        out = self.predictor.prediction(self._flat['node.output_point_m'])
+        pose_message(out.position_m, out.quaternion, self.frame_id, s_to_stamp(0.0))
 
     def _update_modal(self) -> None:
-        """Lowest natural frequencies and damping warnings: on start and on settings changes."""
+        """Classified modes (the lowest platform mode), damping and time-step warnings: on
+        start, on settings changes and before the diagnostics that follow a rebuild."""
+        self._modal_stale = False
         try:
-            freqs = safe(natural_frequencies, self.predictor.system, 12)
+            found = safe(system_modes, self.predictor.settings, self.predictor.system)
+            freqs = (safe(natural_frequencies, self.predictor.system, 12) if found is None
+                     else found.frequency_hz)
+            self._platform_hz = np.zeros(0) if found is None else found.platform_hz
             positive = np.asarray(freqs)[np.asarray(freqs) > 0]
             self._step_warnings = time_step_warnings(
                 self.predictor.settings, self.predictor.system,
@@ -548,7 +564,7 @@ class DynamicsNode(Node):
 
     def _compute_frf(self, overrides: dict) -> dict:
         settings = self.predictor.settings
-        changes = settings_changes(overrides, settings.frf_force_n)
+        changes = settings_changes(overrides, settings.frf_force_n, settings.frf_moment_nm)
         if changes:
             settings = settings.replace(**changes)
         if 'method' in changes or 'elements_per_cable' in changes:
@@ -576,6 +592,8 @@ class DynamicsNode(Node):
         """The node's DiagnosticArray: model, pose input, wrench input, frequency_response."""
         hw = self.get_fully_qualified_name()
         name = self.get_name()
+        if self._modal_stale:
+            self._update_modal()
         statuses = [self._model_status(name, hw)]
         for title, health, extra in (('pose input', self.pose_health, {}),
                                      ('wrench input', self.wrench_health, self._wrench_stats())):
@@ -603,6 +621,9 @@ class DynamicsNode(Node):
             'tension_min_n': float(p.eq.tensions.tension_n.min()),
             'tension_max_n': float(p.eq.tensions.tension_n.max()),
             'lowest_natural_frequency_hz': self._lowest_hz,
+            'lowest_platform_mode_hz': (float(self._platform_hz[0]) if self._platform_hz.size
+                                        else float('nan')),
+            'platform_modes_hz': np.round(self._platform_hz, 4).tolist(),
             'sag_parameter': np.round(update.sag_parameter, 4).tolist(),
             **_equilibrium_values(p.settings, p.eq),
             'rebuilds': self._rebuilds,
@@ -790,7 +811,6 @@ def main(args=None):
         # (seconds under load, with the default signal dispositions back) is skipped
         stopper.exit(status)
     return status
-
 
 
 class Stopped(BaseException):

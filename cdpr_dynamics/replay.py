@@ -50,6 +50,7 @@ from cdpr_dynamics.recording.writer import RecordingWriter
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import displacement_message, read_displacement
 from msg_adapters.joint_state import read_tensions, tensions_message
+from msg_adapters.pose import pose_message
 from msg_adapters.inputs import InputHandler
 from msg_adapters.validation import InvalidMessage, stamp_to_ns
 
@@ -78,6 +79,11 @@ class NodeOptions:
     pose_tolerance_m: float = NODE_PARAMETER_BY_NAME['node.pose_tolerance_m'].default
     angle_tolerance_rad: float = NODE_PARAMETER_BY_NAME['node.angle_tolerance_rad'].default
     quaternion_tolerance: float = NODE_PARAMETER_BY_NAME['node.quaternion_tolerance'].default
+    output_point_m: tuple = tuple(NODE_PARAMETER_BY_NAME['node.output_point_m'].default)
+
+    def __post_init__(self):
+        """Keep ``output_point_m`` a tuple of floats (hashable, JSON in the metadata)."""
+        object.__setattr__(self, 'output_point_m', tuple(float(v) for v in self.output_point_m))
 
     @classmethod
     def from_params(cls, flat: dict) -> 'NodeOptions':
@@ -279,6 +285,7 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
     frame_id = settings.robot.frame_id
     handler = InputHandler(predictor, frame_id, options.quaternion_tolerance)
     displacement_topic = f'{_namespace(wrench)}/predicted_displacement'
+    predicted_pose_topic = f'{_namespace(wrench)}/predicted_pose'
     tensions_topic = f'{_namespace(pose)}/cable_tensions'
     summary = ReplaySummary(input_path, output_path, pose, wrench, order, settings.method,
                             settings.elements_per_cable, predictor.system.dofs)
@@ -288,6 +295,7 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
             writer.add_topic(name, info.topics[name].type, info.topics[name].offered_qos_profiles,
                              info.topics[name].type_hash or None)
         writer.add_topic(displacement_topic, DISPLACEMENT_TYPE, [_qos(10)])
+        writer.add_topic(predicted_pose_topic, POSE_TYPE, [_qos(10)])
         writer.add_topic(tensions_topic, TENSIONS_TYPE, [_qos(1, transient_local=True)])
         writer.add_topic(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE, [_qos(10)])
         writer.add_metadata('cdpr_replay', {
@@ -325,7 +333,7 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
             else:
                 summary.wrenches += 1
                 try:
-                    u = handler.wrench(msg)
+                    handler.wrench(msg)
                 except InvalidMessage as exc:
                     summary.rejected[f'wrench:{exc.kind}'] += 1
                     writer.write(DIAGNOSTICS_TOPIC,
@@ -333,8 +341,11 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
                                  t, t)
                 else:
                     summary.wrenches_accepted += 1
-                    writer.write(displacement_topic,
-                                 displacement_message(u, frame_id, msg.header.stamp), t, t)
+                    out = predictor.prediction(options.output_point_m)
+                    writer.write(displacement_topic, displacement_message(
+                        out.displacement_m, frame_id, msg.header.stamp), t, t)
+                    writer.write(predicted_pose_topic, pose_message(
+                        out.position_m, out.quaternion, frame_id, msg.header.stamp), t, t)
             done += 1
             if progress is not None:
                 progress(done, total)

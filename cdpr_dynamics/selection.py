@@ -34,6 +34,7 @@ SAFETY = 1.25               # auto needs SAFETY * estimate <= tolerance (test_es
 MASSLESS = ('spring', 'fem', 'catenary', 'catenary_exact')   # in this order at n = 1
 STEP = 1.25                 # n grows by this factor while the estimate is above the tolerance
 
+
 @dataclass(frozen=True)
 class ModelChoice:
     """What ``auto`` chose, why (one line), and its estimated relative error over the band

@@ -81,8 +81,8 @@ class SlackHistory:
         """[(start, end)] times (s) during which ``cable`` is slack (end inclusive)."""
         flags = self.slack[:, cable].astype(int)
         edges = np.flatnonzero(np.diff(np.concatenate([[0], flags, [0]])))
-        return [(float(self.t_s[s]), float(self.t_s[e - 1])) for s, e in zip(edges[::2],
-                                                                           edges[1::2])]
+        return [(float(self.t_s[s]), float(self.t_s[e - 1]))
+                for s, e in zip(edges[::2], edges[1::2])]
 
 
 class CompressionFreeCables:

@@ -27,8 +27,8 @@ exist or the residual would grow tenfold. A fixed point of the iteration satisfi
 conditions of the problem above (the QP's constraint gradients are the exact ones), so the
 paper's objective chooses among the equilibria. Iterations stop when the residual is below
 ``rtol`` of the weight |w_force| (moments: of |w_force| times the platform's largest lever arm)
-and the QP no longer moves the tensions (by more than ``OPTIMALITY_RTOL`` = 1e-6 of T_max). Straight cables (gamma = 0)
-converge in one step to the chord answer.
+and the QP no longer moves the tensions (by more than ``OPTIMALITY_RTOL`` = 1e-6 of T_max).
+Straight cables (gamma = 0) converge in one step to the chord answer.
 
 Cables whose catenary does not exist at T_min get the lower bound 1.01 T_exist,i (found by
 bisection on the existence of a solution): the least tension the cable can have at this pose;
@@ -104,8 +104,8 @@ def lowest_tension(cables: CableSet, which: np.ndarray, t_high_n: float,
     (within ~1e-6 relative) that ``EXIST_MARGIN`` covers. Each probe is warm-started from the
     solution at the lowest tension found so far (continuation along the taut branch); every
     probe is capped at ``PROBE_ITERATIONS`` Newton steps of ``PROBE_HALVINGS`` halvings (a
-    missing solution then costs little; one missed near the fold only raises the estimate). NaN for cables not in ``which``, inf where no tension
-    up to ``t_high_n`` has a solution.
+    missing solution then costs little; one missed near the fold only raises the estimate).
+    NaN for cables not in ``which``, inf where no tension up to ``t_high_n`` has a solution.
     """
     tension = np.asarray(cables.tension_n, dtype=float)
     lo = np.where(which, np.maximum(tension, 0.0), np.nan)

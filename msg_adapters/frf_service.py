@@ -26,14 +26,21 @@ import numpy as np
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters
 
-from cdpr_dynamics.analysis import FRF_ARRAYS
+from cdpr_dynamics.analysis import FRF_ARRAYS, MODE_ARRAYS, ROTATION_ARRAYS
 from msg_adapters.validation import clip
 
 SERVICE = 'frequency_response'
 ARRAYS = FRF_ARRAYS
-#: override key -> type of its value; force_* set one component of frf.force_n.
+#: arrays some models cannot have (rotations of a point mass, classified modes of dsm): the
+#: client helper's default request leaves them out of its result instead of failing
+OPTIONAL_ARRAYS = ROTATION_ARRAYS + MODE_ARRAYS
+#: override key -> type of its value; force_* / moment_* set one component of frf.force_n /
+#: frf.moment_nm.
 OVERRIDES = {'method': str, 'elements_per_cable': int, 'f_min_hz': float, 'f_max_hz': float,
-             'n_points': int, 'force_x_n': float, 'force_y_n': float, 'force_z_n': float}
+             'n_points': int, 'force_x_n': float, 'force_y_n': float, 'force_z_n': float,
+             'moment_x_nm': float, 'moment_y_nm': float, 'moment_z_nm': float}
+_LOADS = (('frf_force_n', ('force_x_n', 'force_y_n', 'force_z_n')),
+          ('frf_moment_nm', ('moment_x_nm', 'moment_y_nm', 'moment_z_nm')))
 
 
 #: most names (arrays and overrides) one request may hold
@@ -100,7 +107,8 @@ def response_size_error(names, n_points: int, max_values: int) -> str:
     """Why the reply to ``names`` at ``n_points`` would be too large, or ''.
 
     At most :data:`MAX_NAMES` names; distinct array names x ``n_points`` at most ``max_values``
-    (an upper bound: ``natural_frequencies_hz`` holds 12 values, not ``n_points``)."""
+    (an estimate: ``natural_frequencies_hz`` holds the modes up to ``f_max_hz``, at least
+    12, not ``n_points``)."""
     names = list(names)
     if len(names) > MAX_NAMES:
         return (f'request has {len(names)} names, more than the {MAX_NAMES} one call may ask '
@@ -113,15 +121,16 @@ def response_size_error(names, n_points: int, max_values: int) -> str:
     return ''
 
 
-def settings_changes(overrides: dict, frf_force_n) -> dict:
+def settings_changes(overrides: dict, frf_force_n, frf_moment_nm=(0.0, 0.0, 0.0)) -> dict:
     """Keyword arguments of ``Settings.replace`` for the overrides of one call."""
-    changes = {k: v for k, v in overrides.items() if not k.startswith('force_')}
-    force = np.array(frf_force_n, dtype=float)
-    for axis, key in enumerate(('force_x_n', 'force_y_n', 'force_z_n')):
-        if key in overrides:
-            force[axis] = overrides[key]
-    if any(k.startswith('force_') for k in overrides):
-        changes['frf_force_n'] = force
+    loads = [k for _, keys in _LOADS for k in keys]
+    changes = {k: v for k, v in overrides.items() if k not in loads}
+    for (field_name, keys), base in zip(_LOADS, (frf_force_n, frf_moment_nm)):
+        if any(k in overrides for k in keys):
+            value = np.array(base, dtype=float)
+            for axis, key in enumerate(keys):
+                value[axis] = overrides.get(key, value[axis])
+            changes[field_name] = value
     return changes
 
 
@@ -156,6 +165,8 @@ def pack_response(names, arrays: dict | None, error: str = '',
                                        f'{", ".join(k + "=..." for k in OVERRIDES)}'))
         elif error or arrays is None:
             values.append(string_value(error or 'not computed'))
+        elif isinstance(arrays[name], str):     # an array this model cannot have: why
+            values.append(string_value(arrays[name]))
         else:
             values.append(double_array_value(arrays[name]))
     response.values = values
@@ -230,6 +241,8 @@ def call_frequency_response(node, names=None, overrides: dict | None = None,
     if future.exception() is not None:
         raise FrequencyResponseError(f'service {service} failed: {future.exception()}')
     arrays, reasons = unpack_response(request, future.result())
+    if names is None:       # the default request: arrays this model cannot have are left out
+        reasons = {k: v for k, v in reasons.items() if k not in OPTIONAL_ARRAYS}
     if reasons:
         raise FrequencyResponseError('; '.join(f'{k}: {v}' for k, v in reasons.items())
                                      if len(set(reasons.values())) > 1

@@ -12,7 +12,6 @@ from cdpr_dynamics.config import ConfigError, default_config_path, load_settings
 from conftest import analyze, installed, write_config
 
 
-
 def test_paper_config_is_the_default_and_matches_table_1():
     s = load_settings()
     assert default_config_path().name == 'paper_cdpr.yaml'

@@ -23,7 +23,7 @@ def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
     assert np.isfinite(row['naive_over_condensed'])
     assert rows[('fem', 64)]['dofs'] == 1515
     assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'catenary_exact',
-                                             'fem_sag_n16', 'fem_sag_n16_chord_statics'}
+                                               'fem_sag_n16', 'fem_sag_n16_chord_statics'}
     assert result['node_compute_per_wrench']['p99_ms'] > 0
     replay = {r['method']: r for r in result['replay']}
     assert set(replay) == {'spring', 'fem'} and all(r['inputs'] > 0 for r in replay.values())

@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 from cdpr_dynamics import models
 from cdpr_dynamics.analysis import equilibrium
 from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import (DENSE_EIGEN_DOFS, Damping, _assemble, DynamicsError, Newmark, frequency_response,
-                                    natural_frequencies, platform_system,
+from cdpr_dynamics.dynamics import (DENSE_EIGEN_DOFS, Damping, _assemble, DynamicsError, Newmark,
+                                    frequency_response, natural_frequencies, platform_system,
                                     rayleigh_from_modal_ratio, tension_change, time_history)
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.robot import Robot, geometry, required_wrench

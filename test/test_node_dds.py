@@ -105,6 +105,8 @@ class Harness:
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.node.create_subscription(Vector3Stamped, 'predicted_displacement',
                                       self._on_prediction, 1000)
+        self.poses: dict[int, tuple] = {}
+        self.node.create_subscription(PoseStamped, 'predicted_pose', self._on_pose, 1000)
         self.node.create_subscription(JointState, 'cable_tensions', self._on_tensions, latched)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
         self.pose_pub = self.node.create_publisher(PoseStamped, 'pose', qos_profile_sensor_data)
@@ -132,6 +134,13 @@ class Harness:
                 break
 
     _closed = False
+
+    def _on_pose(self, msg):
+        p, o = msg.pose.position, msg.pose.orientation
+        with self.cond:
+            self.poses[stamp_to_ns(msg.header.stamp)] = (np.array([p.x, p.y, p.z]),
+                                                         np.array([o.x, o.y, o.z, o.w]))
+            self.cond.notify_all()
 
     def _on_prediction(self, msg):
         with self.cond:
@@ -402,9 +411,15 @@ def test_frequency_response_matches_the_library(paper):
     paper.pose([0.2, 0.1, 1.3])
     arrays = paper.frf()
     expected = frf_arrays(paper.settings, build_system(paper.settings, paper.mirror.eq))
-    assert list(arrays) == list(ARRAYS)
-    for name in ARRAYS:
+    arrays_of_model = [n for n in ARRAYS if not isinstance(expected[n], str)]
+    assert list(arrays) == arrays_of_model          # a point mass: no rotation arrays
+    for name in arrays_of_model:
         np.testing.assert_allclose(arrays[name], expected[name], rtol=1e-9, err_msg=name)
+    _, reasons = paper.frf_raw(['rotation_x_rad', 'mode_platform_fraction'])
+    assert reasons == {'rotation_x_rad': expected['rotation_x_rad']}
+    model = paper.status('model')['values']
+    platform = expected['platform_natural_frequencies_hz']
+    assert float(model['lowest_platform_mode_hz']) == pytest.approx(platform[0], rel=1e-4)
     calls = paper.status('frequency_response')['values']
     again = paper.frf(['amplitude_z_m'])                     # same state: from the cache
     np.testing.assert_array_equal(again['amplitude_z_m'], arrays['amplitude_z_m'])
@@ -632,6 +647,16 @@ def test_rigid_platform_inputs(ros):
                                    rtol=1e-6, atol=1e-4)
         for _ in range(40):
             rigid.wrench([10.0, 0.0, 100.0], [1.0, -2.0, 0.5])
+        want = rigid.mirror.prediction()          # the predicted pose, beside the displacement
+        key = rigid.t_ns
+        assert rigid.wait(lambda: key in rigid.poses), 'no predicted_pose'
+        position, quaternion = rigid.poses[key]
+        np.testing.assert_allclose(position, want.position_m, rtol=1e-9, atol=1e-12)
+        assert (Rotation.from_quat(quaternion) * Rotation.from_quat(want.quaternion).inv()
+                ).magnitude() < 1e-9
+        assert Rotation.from_quat(quaternion).magnitude() > 1e-7       # it turned
+        arrays = rigid.frf(['rotation_y_rad', 'amplitude_z_m'], {'moment_y_nm': 5.0})
+        assert arrays['rotation_y_rad'].max() > 0
         rigid.bad_wrench([0.0, 0.0, 0.0], [0.0, 0.0, 500.0], words='outside the feasible set')
         rigid.wrench([10.0, 0.0, 100.0], [1.0, -2.0, 0.5])
     finally:

@@ -271,6 +271,7 @@ def test_replay_output_reads_with_independent_readers(tmp_path):
     summary = replay_offline(golden('invalid_inputs'), out, settings, options=options)
     want = {'/pose': (POSE, 20), '/wrench': (WRENCH, 200),
             '/predicted_displacement': ('geometry_msgs/msg/Vector3Stamped', 195),
+            '/predicted_pose': (POSE, 195),
             '/cable_tensions': ('sensor_msgs/msg/JointState', 16),
             '/diagnostics': ('diagnostic_msgs/msg/DiagnosticArray', 9)}
     assert summary.messages_written == sum(n for _, n in want.values())
@@ -346,7 +347,7 @@ def test_namespaced_bag_and_topic_overrides(tmp_path):
     assert (summary.poses, summary.wrenches, dict(summary.rejected)) == (2, 20, {})
     info = recording_info(out)
     assert set(info.topics) == {'/right/pose', '/right/wrench', '/right/predicted_displacement',
-                                '/right/cable_tensions', '/diagnostics'}
+                                '/right/predicted_pose', '/right/cable_tensions', '/diagnostics'}
     assert leftovers(tmp_path) == []
 
 

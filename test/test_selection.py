@@ -268,7 +268,7 @@ def test_auto_stays_within_the_budget_and_says_what_would_meet_the_tolerance():
     assert settings.max_dofs == 600
     unlimited = choose_model(settings.replace(max_dofs=UNLIMITED), eq, damping=ref.damping)
     assert (unlimited.method, unlimited.elements_per_cable, unlimited.dofs) == ('fem_sag', 44,
-                                                                                 1035)
+                                                                                1035)
     choice = choose_model(settings, eq, damping=ref.damping)
     assert (choice.method, choice.elements_per_cable, choice.dofs) == ('fem_sag', 25, 579)
     assert not choice.meets_tolerance and choice.estimated_error > settings.tolerance

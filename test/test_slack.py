@@ -114,7 +114,7 @@ def test_slack_intervals_are_where_the_tensions_say(paper, paper_5hz):
         if include_damping:
             rate = np.gradient(linear.u, linear.t_s, axis=0)
             stretch_force = stretch_force + damping.stiffness_factor * tension_change(system,
-                                                                                     rate)
+                                                                                      rate)
         linear_first = int(np.argmax((stretch_force <= 0).any(axis=1)))
         assert abs(first - linear_first) <= 1
 

@@ -219,7 +219,7 @@ def test_undamped_frf_exactly_at_a_resonance_is_flagged():
                              f_max_hz=40.0, n_points=2)
     arrays = frf_arrays(undamped, spring)              # the service's arrays
     assert np.isinf(arrays['amplitude_z_m'][0]) and np.isinf(arrays['log10_amplitude_z'][0])
-    assert not any(np.isnan(v).any() for v in arrays.values())
+    assert not any(np.isnan(v).any() for v in arrays.values() if not isinstance(v, str))
     # dsm (Wittrick-Williams frequencies, 1e-9 Hz): huge but finite, never NaN or a raise
     dsm = build_system(paper, eq, 'dsm', 0)
     f = natural_frequencies_dsm(dsm, 25)

@@ -16,7 +16,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from conftest import wait_until
+from conftest import installed, wait_until
 from cdpr_dynamics.cli.analyze import parse_args as analyze_args, run as analyze_run
 from cdpr_dynamics.cli.workspace import Run, parse_args, run_tasks
 from cdpr_dynamics.config import read_params_file, settings_from_params
@@ -25,7 +25,7 @@ from cdpr_dynamics.workspace import COLUMNS, chunk_tasks, compute_chunk, pose_ro
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / 'config' / 'paper_cdpr.yaml'
 RIGID = REPO / 'test' / 'data' / 'rigid_cdpr.yaml'
-BIN = Path(sys.executable).parent
+BIN = Path(sys.executable).parent      # the dask command line, of this Python's venv
 #: the grid of the engine tests: 3 x 3 x 3 poses, 2 of them infeasible, fem 4, chunks of 3
 GRID = ['--x', '-1', '1', '3', '--y', '-0.6', '0.6', '3', '--z', '0.4', '2.2', '3',
         '--method', 'fem', '--elements', '4', '--skip-auto', '--chunk-size', '3']
@@ -34,7 +34,7 @@ ENV = {**os.environ, 'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': '1',
 
 
 def workspace(*args, timeout=240) -> subprocess.CompletedProcess:
-    return subprocess.run([str(BIN / 'cdpr_workspace'), *map(str, args)], capture_output=True,
+    return subprocess.run([installed('cdpr_workspace'), *map(str, args)], capture_output=True,
                           text=True, timeout=timeout, env=ENV)
 
 
@@ -315,7 +315,7 @@ def test_existing_cluster_with_a_worker_killed_mid_run(tmp_path, processes, seri
     first = _worker(processes, address, tmp_path / 'w1.log')
     _worker(processes, address, tmp_path / 'w2.log')
     out = tmp_path / 'remote'
-    client = processes.start([BIN / 'cdpr_workspace', *GRID, '--output', out, '--scheduler',
+    client = processes.start([installed('cdpr_workspace'), *GRID, '--output', out, '--scheduler',
                               address], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True)
     wait_until(lambda: glob.glob(str(out / 'chunks' / '*.parquet')) or client.poll()
@@ -332,7 +332,7 @@ def test_interrupt_kill_then_resume_computes_each_pose_once(tmp_path, processes,
     outright (its LocalCluster workers go with it), then --resume to the end."""
     out = tmp_path / 'interrupted'
     chunks = str(out / 'chunks' / '*.parquet')
-    run = processes.start([BIN / 'cdpr_workspace', *GRID, '--output', out, '--workers', '2'],
+    run = processes.start([installed('cdpr_workspace'), *GRID, '--output', out, '--workers', '2'],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     wait_until(lambda: glob.glob(chunks) or run.poll() is not None, 180, 'the first chunk')
     os.killpg(run.pid, signal.SIGINT)           # Ctrl-C reaches the whole process group
@@ -340,7 +340,7 @@ def test_interrupt_kill_then_resume_computes_each_pose_once(tmp_path, processes,
     assert run.returncode == 130 and stderr == 'cdpr_workspace: interrupted\n', stderr
     kept = {p: os.stat(p).st_mtime_ns for p in glob.glob(chunks)}
     assert 1 <= len(kept) < 9 and not (out / 'workspace.parquet').exists()
-    again = processes.start([BIN / 'cdpr_workspace', *GRID, '--output', out, '--workers', '2',
+    again = processes.start([installed('cdpr_workspace'), *GRID, '--output', out, '--workers', '2',
                              '--resume'], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     wait_until(lambda: len(glob.glob(chunks)) > len(kept) or again.poll() is not None, 180,
                'a chunk of the resumed run')

@@ -17,10 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, Stopwatch, build_system,
-                                    damping_for, damping_warnings, equilibrium, equilibrium_for,
-                                    equilibrium_summary, frf_arrays, geometry_summary,
-                                    model_warnings, safe)
+from cdpr_dynamics.analysis import (DSM_MODES, AnalysisError, Equilibrium, Stopwatch,
+                                    build_system, damping_for, damping_warnings, equilibrium,
+                                    equilibrium_for, equilibrium_summary, frf_arrays,
+                                    geometry_summary, model_warnings, point_displacement,
+                                    receptance, safe, system_modes)
 from cdpr_dynamics.cli import interruptible
 from cdpr_dynamics.config import METHODS, ConfigError, Settings, load_settings
 from cdpr_dynamics.dynamics import tension_change, time_history
@@ -59,8 +60,13 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
                             + '; '.join(assembly.warnings))
     with watch('frf'):
         arrays = safe(frf_arrays, settings, system)
+        damping = safe(damping_for, settings, system)
+        gain = safe(receptance, system, arrays['frequency_hz'], damping)
+    with watch('modes'):
+        found = safe(system_modes, settings, system)
     freqs = arrays['natural_frequencies_hz']
-    damping = safe(damping_for, settings, system)
+    if found is None:
+        warnings.append(DSM_MODES)
     warnings += damping_warnings(damping, freqs)
     histories = []
     if assembly.blocks is not None:
@@ -68,7 +74,9 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
             for f_exc in excitations_hz:
                 th = safe(time_history, system, settings.frf_force_n, f_exc, duration_s, damping,
                           settings.dt_s, settings.newmark_alpha, settings.newmark_beta,
-                          progress=progress and progress(f'time history {f_exc:g} Hz'))
+                          progress=progress and progress(f'time history {f_exc:g} Hz'),
+                          moment_nm=settings.frf_moment_nm)
+                u_point = point_displacement(th.u, eq.geometry.rotation, settings.frf_point_m)
                 tension = eq.tensions.tension_n + tension_change(system, th.u)
                 min_tension = float(tension.min())
                 slack = min_tension <= 0.0
@@ -80,7 +88,7 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
                     warnings.append(f'{f_exc:g} Hz time history: tension drops to '
                                     f'{min_tension:.1f} N, below tension.min_n')
                 histories.append({'excitation_hz': float(f_exc), 't_s': th.t_s.tolist(),
-                                  'u_m': th.u_m.tolist(), 'min_tension_n': min_tension,
+                                  'u_m': u_point.tolist(), 'min_tension_n': min_tension,
                                   'slack': bool(slack)})
                 if slack_aware:
                     histories[-1]['slack_aware'] = _slack_aware(settings, eq, assembly.method,
@@ -110,13 +118,48 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
                     'stiffness_factor': damping.stiffness_factor,
                     'modal_damping_ratios': [r if np.isfinite(r) else None  # 0 Hz modes
                                              for r in damping.ratios(freqs).tolist()]},
+        'modes': mode_entries(found, freqs, damping),
+        'platform_natural_frequencies_hz': (None if found is None
+                                            else found.platform_hz.tolist()),
         'frf': {'frequency_hz': arrays['frequency_hz'].tolist(),
-                'amplitude_m': amplitude.tolist(), 'phase_rad': phase.tolist()},
+                'amplitude_m': amplitude.tolist(), 'phase_rad': phase.tolist(),
+                'point_m': np.asarray(settings.frf_point_m, dtype=float).tolist(),
+                'receptance': {'real': _finite(gain.real), 'imag': _finite(gain.imag)}},
         'time_history': histories,
         'model_choice': chosen,
         'warnings': warnings,
         'timings_s': watch.seconds,
     }
+
+
+def _finite(values: np.ndarray):
+    """Nested lists with non-finite entries (an undamped resonance) as None (valid JSON)."""
+    values = np.asarray(values, dtype=float)
+    if np.all(np.isfinite(values)):
+        return values.tolist()
+    return np.where(np.isfinite(values), values, None).tolist()
+
+
+def mode_entries(found, freqs, damping) -> list[dict]:
+    """The JSON ``modes`` (SPEC section 6): per mode its frequency, kind, cable, platform
+    energy fraction, effective mass per platform DOF (kg, kg m^2) and damping ratio;
+    ``found`` None (dsm): frequency and damping ratio only, the rest null."""
+    ratios = damping.ratios(freqs)
+    entries = []
+    for i, f in enumerate(np.asarray(freqs, dtype=float)):
+        zeta = float(ratios[i]) if np.isfinite(ratios[i]) else None     # 0 Hz modes
+        if found is None:
+            entries.append({'frequency_hz': float(f), 'kind': None, 'cable': None,
+                            'platform_energy_fraction': None, 'effective_mass': None,
+                            'damping_ratio': zeta})
+            continue
+        cable = int(found.cable[i])
+        entries.append({'frequency_hz': float(f), 'kind': found.kind[i],
+                        'cable': cable if cable >= 0 else None,
+                        'platform_energy_fraction': float(found.platform_fraction[i]),
+                        'effective_mass': found.effective_mass[i].tolist(),
+                        'damping_ratio': zeta})
+    return entries
 
 
 def _slack_aware(settings: Settings, eq: Equilibrium, method: str, f_exc: float,

@@ -9,8 +9,9 @@ Newmark time history, and the node's own work (pose update: tensions + model + f
 one wrench: message check, feasibility, Newmark step, prediction message), cdpr_replay offline
 and, with
 ``--dds``, the live node as a child process (wrench -> prediction latency, its own compute,
-the sustained input rate, and ``cdpr_record`` beside it under a wrench flood). ``--quick`` runs every stage with few repetitions (CI runs it
-to prove the command works; its numbers are not meant to be read).
+the sustained input rate, and ``cdpr_record`` beside it under a wrench flood). ``--quick``
+runs every stage with few repetitions (CI runs it to prove the command works; its numbers are
+not meant to be read).
 """
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ from cdpr_dynamics.config import ConfigError, Settings, default_config_path, loa
 from cdpr_dynamics.dynamics import DynamicsError, frequency_response, time_history
 from cdpr_dynamics.robot import geometry, required_wrench
 
-NODE_METHODS = (('spring', 1), ('catenary', 1), ('fem', 16), ('catenary_exact', 1), ('fem_sag', 16))
+NODE_METHODS = (('spring', 1), ('catenary', 1), ('fem', 16), ('catenary_exact', 1),
+                ('fem_sag', 16))
 SIZES = [('spring', 1), ('fem', 1), ('fem', 4), ('fem', 16), ('fem', 64), ('catenary', 1),
          ('catenary_exact', 1), ('fem_sag', 16), ('dsm', 1)]
 

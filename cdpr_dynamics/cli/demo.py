@@ -9,9 +9,9 @@ time-history load), stamped with the wall clock. This process collects the predi
 displacements and cable tensions, calls ``frequency_response`` (the configured model, and
 ``method=spring`` as an override), and writes a PNG: wrench and predicted displacement over
 time, cable tensions along the path, and the FRF log10|A_z|. All traffic (inputs, outputs,
-diagnostics, service events) is recorded to an MCAP file beside the PNG. Without ROS_DOMAIN_ID it takes a
-free domain of its own; discovery stays on localhost unless ROS_AUTOMATIC_DISCOVERY_RANGE says
-otherwise. Failures end with one line and exit status 1.
+diagnostics, service events) is recorded to an MCAP file beside the PNG. Without ROS_DOMAIN_ID
+it takes a free domain of its own; discovery stays on localhost unless
+ROS_AUTOMATIC_DISCOVERY_RANGE says otherwise. Failures end with one line and exit status 1.
 """
 from __future__ import annotations
 

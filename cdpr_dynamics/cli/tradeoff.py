@@ -42,8 +42,9 @@ COLUMNS = ('method', 'elements_per_cable', 'dofs', 'freq_error_pct', 'frf_error_
            'modes_in_band', 'missed_modes', 'estimated_freq_error_pct',
            'estimated_frf_error_pct', 'valid', 'note')
 FLOOR_PCT = 1e-5      # errors below this are drawn at it (log axes)
-CAP_PCT = 100.0       # errors above this are drawn at it, labelled with their value (the CSV
-                      # and the estimates are not capped)
+# CAP_PCT: errors above this are drawn at it, labelled with their value (the CSV and the
+# estimates are not capped)
+CAP_PCT = 100.0
 
 
 def time_solution(settings, eq, method, n, reference, repeat: int):

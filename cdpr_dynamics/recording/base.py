@@ -32,6 +32,7 @@ DEFAULT_CHUNK_INTERVAL_S = 1.0
 COMPRESSIONS = {'none': CompressionType.NONE, 'zstd': CompressionType.ZSTD,
                 'lz4': CompressionType.LZ4}
 
+
 class RecordingError(RuntimeError):
     """A recording that cannot be written or read as asked; the message is one line."""
 
@@ -143,7 +144,6 @@ def normalise_topics(topics) -> dict:
             typ = type_name_of(typ)
         out[name] = typ
     return out
-
 
 
 def reason(err: Exception) -> str:

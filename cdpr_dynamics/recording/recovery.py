@@ -16,6 +16,7 @@ from mcap.records import Channel, Message, Metadata, Schema
 from cdpr_dynamics.recording.base import mcap_writer, RecordingError, temporary_file
 from cdpr_dynamics.recording.reader import open_mcap, scan
 
+
 def recover_recording(source, destination, *, force: bool = False) -> int:
     """Rewrite what survives of an incomplete recording as a complete, indexed file.
 

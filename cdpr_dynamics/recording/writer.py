@@ -237,9 +237,7 @@ def qos_from_yaml(text: str) -> list:
     return [p for p in profiles if isinstance(p, Mapping) and all(k in p for k in keys)]
 
 
-
 # ----------------------------------------------------------------------------- the recorder's file
-
 FIRST_CHUNK_BYTES = 16 * 1024   # the first chunk's bound; each next one doubles, to chunk_size
 RESERVE_BYTES = 16 * 1024       # margin kept to finish the file, beyond the summary's estimate
 _CHUNK_INDEX_BYTES = 96         # a chunk index record, plus 10 per channel
