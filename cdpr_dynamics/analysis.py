@@ -17,7 +17,8 @@ from cdpr_dynamics.feasibility import cable_crossing
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.models.catenary import (end_position, paper_misclosure, sag_parameter,
                                            up_and_weight)
-from cdpr_dynamics.robot import Geometry, GeometryError, geometry, required_wrench, skew
+from cdpr_dynamics.robot import (WRENCH_AXES, Geometry, GeometryError, geometry,
+                                 required_wrench, skew)
 from cdpr_dynamics.selection import choose_model
 from cdpr_dynamics.statics import Equilibrium, StaticsError, equilibrium_for
 from cdpr_dynamics.tensions import TensionSolver
@@ -36,7 +37,6 @@ def new_tension_solver(settings: Settings) -> TensionSolver:
                          settings.tension_max_n)
 
 
-_WRENCH_AXES = ('force x', 'force y', 'force z', 'moment x', 'moment y', 'moment z')
 RANK_TOLERANCE = 1e-9     # singular values below this times the largest count as zero
 
 
@@ -53,7 +53,7 @@ def _check_design(settings: Settings, geo: Geometry) -> None:
     ndof = settings.robot.platform_dofs
     rank, _, direction = structure_rank(geo.structure_matrix)
     if rank < ndof:
-        axis = _WRENCH_AXES[int(np.argmax(np.abs(direction)))]
+        axis = WRENCH_AXES[int(np.argmax(np.abs(direction)))]
         raise AnalysisError(f'the structure matrix has rank {rank} < {ndof} platform DOFs: no '
                             f'cable tensions produce a wrench along '
                             f'{np.round(direction, 3).tolist()} (mostly {axis}), so the '

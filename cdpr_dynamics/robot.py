@@ -21,6 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 
+#: Names of the wrench components (force, then moment), as messages name a direction.
+WRENCH_AXES = ('force x', 'force y', 'force z', 'moment x', 'moment y', 'moment z')
+
+
 class GeometryError(ValueError):
     """A pose the robot cannot take (attachment at an anchor, outside the frame, ...)."""
 

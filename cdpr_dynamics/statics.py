@@ -45,7 +45,7 @@ import numpy as np
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.models import catenary
 from cdpr_dynamics.models.base import CableSet
-from cdpr_dynamics.robot import Geometry, required_wrench
+from cdpr_dynamics.robot import WRENCH_AXES, Geometry, required_wrench
 from cdpr_dynamics.tensions import TensionResult, TensionSolver
 
 #: Methods linearised about the sag-consistent state; the others use the chord statics.
@@ -234,11 +234,8 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
         return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
                           tuple(warnings))
     raise StaticsError(f'no sag-consistent tension distribution: the SQP did not converge in '
-                       f'{iterations} iterations (residual {_AXES[worst]} '
+                       f'{iterations} iterations (residual {WRENCH_AXES[worst]} '
                        f'{residual[worst]:.3g}){cause}')
-
-
-_AXES = ('force x', 'force y', 'force z', 'moment x', 'moment y', 'moment z')
 
 
 def _lift(cables, candidates, tension, lower, t_max_n):

@@ -45,6 +45,8 @@ from dataclasses import dataclass
 import numpy as np
 import proxsuite
 
+from cdpr_dynamics.robot import WRENCH_AXES
+
 _proxqp = proxsuite.proxqp
 
 #: proxsuite outcomes as TensionResult.status strings.
@@ -280,7 +282,7 @@ class TensionSolver:
         j = int(np.argmax(excess))
         centre = wt[j] @ self._mid
         half = np.abs(wt[j]) @ self._half
-        axis = ('force x', 'force y', 'force z', 'moment x', 'moment y', 'moment z')[j]
+        axis = WRENCH_AXES[j]
         return (f'wrench {_fmt(w)} {self._units()} outside the feasible set for {self._bounds()}: '
                 f'{axis} {w[j]:.4g} is outside the reachable [{centre - half:.4g}, '
                 f'{centre + half:.4g}]')
