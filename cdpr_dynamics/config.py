@@ -150,6 +150,8 @@ NODE_PARAMETERS: tuple[Param, ...] = (
           'their arrival', choices=('reject', 'arrival')),
     Param('node.output_point_m', [0.0, 0.0, 0.0], 'point whose predicted displacement and '
           'pose are published (m, platform frame; zero: the centroid)', length=3),
+    Param('node.marker_scale', 100.0, 'exaggeration of the predicted-displacement arrow of '
+          'cdpr_markers (arrow length / displacement)', 0.0, 1e9),
 )
 NODE_PARAMETER_BY_NAME = {p.name: p for p in NODE_PARAMETERS}
 #: Parameters every rclpy node has; a params file may set them.

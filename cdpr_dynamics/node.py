@@ -6,7 +6,9 @@ Subscribes ``pose`` (PoseStamped) and ``wrench`` (WrenchStamped), sensor-data Qo
 ``predicted_displacement`` (Vector3Stamped, stamped with the wrench's stamp) and
 ``predicted_pose`` (PoseStamped, same stamp) of ``node.output_point_m``, ``cable_tensions``
 (JointState: position = length m, effort = tension N; transient local, one per accepted pose)
-and ``/diagnostics``; serves ``frequency_response`` (rcl_interfaces/srv/GetParameters).
+``cdpr_markers`` (MarkerArray of :mod:`msg_adapters.markers`, transient local: at start, on
+every rebuild, the displacement arrow at most every diagnostics tick) and ``/diagnostics``;
+serves ``frequency_response`` (rcl_interfaces/srv/GetParameters).
 
 The node only wires ROS to :class:`cdpr_dynamics.live.LivePredictor` (the same core as
 ``cdpr_replay``) and to :func:`cdpr_dynamics.analysis.frf_arrays`; every message conversion and
@@ -47,6 +49,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data, qos_profile_services_default)
 from sensor_msgs.msg import JointState
+from visualization_msgs.msg import MarkerArray
 
 from cdpr_dynamics.analysis import (AnalysisError, build_system, damping_for, damping_warnings,
                                     equilibrium_summary, frf_arrays, safe, system_modes)
@@ -62,6 +65,7 @@ from msg_adapters.displacement import displacement_message
 from msg_adapters.frf_service import (ARRAYS, pack_response, parse_request, response_size_error,
                                       settings_changes)
 from msg_adapters.joint_state import tensions_message
+from msg_adapters.markers import equilibrium_markers, update_arrow
 from msg_adapters.pose import pose_message
 from msg_adapters.inputs import NUMERIC_ERRORS, InputHandler, first_line
 from msg_adapters.stamps import StampPolicy
@@ -244,6 +248,9 @@ class DynamicsNode(Node):
         self.pose_pub = self.create_publisher(PoseStamped, 'predicted_pose', 10)
         self.tensions_pub = self.create_publisher(JointState, 'cable_tensions', latched)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.markers_pub = self.create_publisher(MarkerArray, 'cdpr_markers', latched)
+        self._markers_arrow = None
+        self._markers = None
         self.pose_sub = self.create_subscription(PoseStamped, 'pose', self.on_pose,
                                                  qos_profile_sensor_data)
         self.wrench_sub = self.create_subscription(WrenchStamped, 'wrench', self.on_wrench,
@@ -265,6 +272,7 @@ class DynamicsNode(Node):
         self._diag_last = -np.inf
         self._diag_timer = self.create_timer(CHANGE_PERIOD_S, self.on_diagnostics_timer)
         self._publish_tensions(self.get_clock().now().to_msg())
+        self._publish_markers()
         update = self.predictor.last_update
         logger.info(f'{update.method} model, {update.dofs} DOFs at '
                     f'{np.round(self.predictor.position_m, 4).tolist()} m in '
@@ -449,6 +457,8 @@ class DynamicsNode(Node):
         self._modal_stale = True
         self._diag_dirty = True
         self._log_model_warnings()
+        if hasattr(self, 'markers_pub'):
+            self._publish_markers()
 
     def _log_model_warnings(self) -> None:
         """Log the model's warnings (sag, accuracy, slack, heavy damping, fallback, time step)
@@ -471,6 +481,19 @@ class DynamicsNode(Node):
         eq = self.predictor.eq
         self.tensions_pub.publish(tensions_message(eq.geometry.length_m, eq.tensions.tension_n,
                                                    stamp, self.frame_id))
+
+    def _publish_markers(self, rebuilt: bool = True) -> None:
+        """``cdpr_markers`` of the current equilibrium (rebuilt) or only its arrow moved to
+        the predicted displacement of the centroid times ``node.marker_scale``."""
+        arrow = self.predictor.prediction().displacement_m * self._flat['node.marker_scale']
+        self._markers_arrow = arrow
+        stamp = self.get_clock().now().to_msg()
+        if rebuilt or self._markers is None:
+            self._markers = equilibrium_markers(self.predictor.settings, self.predictor.eq,
+                                                arrow, 1.0, stamp)
+        else:
+            update_arrow(self._markers, arrow, 1.0, stamp)
+        self.markers_pub.publish(self._markers)
 
     def _warm_up(self) -> None:
         """One throw-away wrench so the first real one does not pay first-call costs."""
@@ -582,6 +605,9 @@ class DynamicsNode(Node):
     # --------------------------------------------------------------------- diagnostics
 
     def on_diagnostics_timer(self) -> None:
+        arrow = self.predictor.prediction().displacement_m * self._flat['node.marker_scale']
+        if not np.array_equal(arrow, self._markers_arrow):   # the arrow: at most every tick
+            self._publish_markers(rebuilt=False)
         now = time.monotonic()
         if self._diag_dirty or now - self._diag_last >= self._flat['node.diagnostics_period_s']:
             self._diag_dirty = False

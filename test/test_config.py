@@ -456,9 +456,12 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-def interrupt_when_busy(command, env, busy) -> subprocess.CompletedProcess:
+def interrupt_when_busy(command, env, busy):
     """Start ``command`` in a session of its own, wait until ``busy(proc, out_path)`` holds,
-    send SIGINT to its process group (what Ctrl-C in a terminal does) and collect it."""
+    send SIGINT to its process group (what Ctrl-C in a terminal does) and collect it.
+
+    Returns the CompletedProcess and the pids of its child processes at the interrupt (some run
+    in sessions of their own, e.g. cdpr_bench --dds's node: the tool must stop them itself)."""
     out_path = Path(env['ROS_LOG_DIR']) / 'stdout.txt'
     with open(out_path, 'w') as out:
         proc = subprocess.Popen([str(c) for c in command], env=env, stdout=out,
@@ -467,13 +470,23 @@ def interrupt_when_busy(command, env, busy) -> subprocess.CompletedProcess:
             wait_until(lambda: proc.poll() is not None or busy(proc, out_path), 120,
                        f'{command[0]} to get busy')
             assert proc.poll() is None, (proc.returncode, proc.stderr.read())
+            kids = children(proc.pid)
             os.killpg(proc.pid, signal.SIGINT)
             _, err = proc.communicate(timeout=60)
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
-    return subprocess.CompletedProcess(command, proc.returncode, out_path.read_text(), err)
+    return (subprocess.CompletedProcess(command, proc.returncode, out_path.read_text(), err),
+            [int(k) for k in kids])
+
+
+def alive(pid: int) -> bool:
+    """True while process ``pid`` runs (a zombie counts as gone)."""
+    try:
+        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z'
+    except OSError:
+        return False
 
 
 def children(pid: int) -> list[str]:
@@ -501,10 +514,17 @@ def computing(seconds: float):
 def test_ctrl_c_ends_a_busy_tool_with_one_line(ros_env, tmp_path, tool, args, busy):
     env = {**ros_env, 'OMP_NUM_THREADS': '1'}
     args = [str(tmp_path / a) if a.startswith(('out.', 'demo.')) else a for a in args]
-    run = interrupt_when_busy([installed(tool), *args], env, busy)
+    run, kids = interrupt_when_busy([installed(tool), *args], env, busy)
     assert run.returncode == 130, (run.returncode, run.stderr[-3000:])
     assert 'Traceback' not in run.stderr
     assert run.stderr.strip().splitlines() == [f'{tool}: interrupted'], run.stderr[-3000:]
+    # nothing left running: the children it had at the interrupt are stopped too
+    try:
+        wait_until(lambda: not any(alive(k) for k in kids), 15, f'{tool} children to stop')
+    finally:
+        for k in kids:
+            if alive(k):
+                os.kill(k, signal.SIGKILL)
 
 
 def test_readme_documents_every_parameter():

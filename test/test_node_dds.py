@@ -37,6 +37,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
+from visualization_msgs.msg import MarkerArray
 
 from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium, frf_arrays
 from cdpr_dynamics.config import load_settings
@@ -65,7 +66,7 @@ NAN, INF = float('nan'), float('inf')
 RECORD_DIR = Path(os.environ.get('CDPR_RECORD_DIR') or
                   Path(__file__).resolve().parents[1] / 'test_output' / 'test_node_dds')
 RECORDED_TOPICS = ['pose', 'wrench', 'predicted_displacement', 'cable_tensions', '/diagnostics',
-                   'frequency_response/_service_event', '/parameter_events']
+                   'frequency_response/_service_event', '/parameter_events', 'cdpr_markers']
 
 
 def _recorder(node, name: str):
@@ -108,6 +109,8 @@ class Harness:
         self.poses: dict[int, tuple] = {}
         self.node.create_subscription(PoseStamped, 'predicted_pose', self._on_pose, 1000)
         self.node.create_subscription(JointState, 'cable_tensions', self._on_tensions, latched)
+        self.markers: list[MarkerArray] = []
+        self.node.create_subscription(MarkerArray, 'cdpr_markers', self._on_markers, latched)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
         self.pose_pub = self.node.create_publisher(PoseStamped, 'pose', qos_profile_sensor_data)
         self.wrench_pub = self.node.create_publisher(WrenchStamped, 'wrench',
@@ -151,6 +154,11 @@ class Harness:
     def _on_tensions(self, msg):
         with self.cond:
             self.tensions.append(msg)
+            self.cond.notify_all()
+
+    def _on_markers(self, msg):
+        with self.cond:
+            self.markers.append(msg)
             self.cond.notify_all()
 
     def _on_diagnostics(self, msg):
@@ -366,6 +374,41 @@ def test_starts_at_the_initial_pose(paper):
     sag = [float(v) for v in model['values']['sag_parameter'].split(';')]
     np.testing.assert_allclose(sag, [0.1989] * 4 + [0.0169] * 4, atol=1e-4)
     assert 'sag: lambda^2 up to 0.199' in model['values']['warnings']
+
+
+def test_markers_at_start_and_on_rebuild(paper):
+    """cdpr_markers is latched at start (the cables end at the library's anchors and
+    attachments) and republished on a rebuild with the new pose, same namespaces and ids."""
+    assert paper.wait(lambda: paper.markers), 'no cdpr_markers from the node at start'
+    first = paper.markers[-1]
+    keys = [(m.ns, m.id, m.type) for m in first.markers]
+    n = paper.settings.robot.n_cables
+    assert keys[:n] == [('cables', i, 4) for i in range(n)]
+    assert all(m.frame_locked and m.header.frame_id == paper.frame for m in first.markers)
+    end = [(np.array([m.points[0].x, m.points[0].y, m.points[0].z]),
+            np.array([m.points[-1].x, m.points[-1].y, m.points[-1].z])) for m in first.markers[:n]]
+    eq = library_tensions(paper.settings, paper.settings.initial_position_m)
+    np.testing.assert_allclose([e[1] for e in end], paper.settings.robot.anchors_m, atol=1e-9)
+    np.testing.assert_allclose([e[0] for e in end],
+                               eq.geometry.position_m + eq.geometry.lever_m, atol=1e-9)
+    count = len(paper.markers)
+    target = paper.settings.initial_position_m + np.array([0.05, 0.0, 0.0])
+    paper.pose(target.tolist())
+    assert paper.wait(lambda: any(
+        abs(m.markers[n + 1].pose.position.x - target[0]) < 1e-12 for m in paper.markers[count:]
+    )), 'no cdpr_markers at the new pose after a rebuild'
+    assert [(m.ns, m.id, m.type) for m in paper.markers[-1].markers] == keys
+    # a wrench moves the arrow (within a diagnostics tick), to marker_scale x the prediction
+    paper.wrench([0.0, 0.0, 500.0])
+    u = paper.wrench([0.0, 0.0, 500.0], dt_s=0.05)      # zero-order hold: the first one held
+
+    def arrow_at(msg, expected):
+        tail, tip = msg.markers[-1].points
+        return np.allclose([tip.x - tail.x, tip.y - tail.y, tip.z - tail.z], expected,
+                           rtol=1e-9, atol=1e-15)
+    assert np.linalg.norm(u) > 1e-6
+    assert paper.wait(lambda: arrow_at(paper.markers[-1], 100.0 * u)), 'arrow not updated'
+    paper.pose(paper.settings.initial_position_m.tolist())
 
 
 def test_all_traffic_is_recorded(paper):

@@ -15,7 +15,7 @@ IMPORT_KEYS = {
     'diagnostic_msgs': 'diagnostic_msgs', 'rcl_interfaces': 'rcl_interfaces',
     'builtin_interfaces': 'builtin_interfaces', 'std_msgs': 'std_msgs',
     'service_msgs': 'service_msgs', 'ament_index_python': 'ament_index_python',
-    'rosidl_parser': 'rosidl_parser',
+    'rosidl_parser': 'rosidl_parser', 'visualization_msgs': 'visualization_msgs',
     'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
     'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
     'mcap': 'mcap-ros2-support',        # no key of its own: a pip dependency of mcap-ros2-support
@@ -39,7 +39,7 @@ ROSDEP = {
     'std_msgs': 'ros', 'rcl_interfaces': 'ros', 'builtin_interfaces': 'ros',
     'service_msgs': 'ros', 'ament_index_python': 'ros', 'rosidl_parser': 'ros',
     'launch': 'ros', 'launch_ros': 'ros', 'proxsuite': 'ros', 'ament_flake8': 'ros',
-    'ament_pep257': 'ros',
+    'ament_pep257': 'ros', 'visualization_msgs': 'ros',
     'python3-numpy': 'apt', 'python3-scipy': 'apt', 'python3-yaml': 'apt',
     'python3-matplotlib': 'apt', 'python3-tqdm': 'apt', 'python3-pytest': 'apt',
     'mcap-ros2-support': 'pip:mcap-ros2-support', 'python3-qpsolvers-pip': 'pip:qpsolvers',

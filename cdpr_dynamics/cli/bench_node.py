@@ -164,110 +164,115 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
     log = open(Path(env['ROS_LOG_DIR']) / 'node.log', 'w')
     proc = start_node(config, env, stdout=log,
                       stderr=subprocess.STDOUT)
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: one line in main
-    node = Node('cdpr_bench')
-    cond = threading.Condition()
-    received, statuses = {}, []
+    try:          # from here on a Ctrl-C anywhere still stops the node (its own session)
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: one line in main
+        node = Node('cdpr_bench')
+        cond = threading.Condition()
+        received, statuses = {}, []
 
-    def on_prediction(msg):
-        now = time.perf_counter()
-        with cond:
-            received[stamp_to_ns(msg.header.stamp)] = now
-            cond.notify_all()
-
-    def on_diagnostics(msg):
-        with cond:
-            statuses.append(read_statuses(msg))
-            cond.notify_all()
-
-    node.create_subscription(Vector3Stamped, 'predicted_displacement', on_prediction, 1000)
-    node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
-    pub = node.create_publisher(WrenchStamped, 'wrench', qos_profile_sensor_data)
-    executor_ = SingleThreadedExecutor()
-    executor_.add_node(node)
-    stop = threading.Event()
-    spinner = threading.Thread(target=lambda: [executor_.spin_once(0.05)
-                                               for _ in iter(stop.is_set, True)], daemon=True)
-    spinner.start()
-
-    def wrench_status(after):
-        with cond:
-            cond.wait_for(lambda: any('cdpr_dynamics: wrench input' in s
-                                      for s in statuses[after:]), 10.0)
-            return next(s['cdpr_dynamics: wrench input']['values'] for s in statuses[after:]
-                        if 'cdpr_dynamics: wrench input' in s)
-
-    result = {}
-    try:
-        with cond:
-            if not cond.wait_for(lambda: pub.get_subscription_count() > 0 and statuses, 30.0):
-                raise RuntimeError('dynamics_node did not come up')
-        frame = load_settings(config).robot.frame_id
-        # latency, published at 200 Hz, stamped 1 ms apart (one Newmark step per wrench, as
-        # for a 1 kHz controller; the node integrates stamps, not wall-clock time)
-        sent = {}
-        t0 = 100.0
-        period, dt = 1 / 200, 1e-3
-        start = time.perf_counter()
-        for k in range(int(latency_s * 200)):
-            target = start + k * period
-            while time.perf_counter() < target:
-                time.sleep(0.0002)
-            stamp = s_to_stamp(t0 + k * dt)
-            msg = wrench_message([0.0, 0.0, 1000.0 * np.sin(2 * np.pi * 5 * k * dt)],
-                                 frame_id=frame, stamp=stamp)
-            sent[stamp_to_ns(stamp)] = time.perf_counter()
-            pub.publish(msg)
-        with cond:
-            cond.wait_for(lambda: len(received) >= len(sent), 5.0)
-        lat = [received[k] - sent[k] for k in sent if k in received]
-        result['latency'] = _percentiles(lat)
-        result['latency']['lost'] = len(sent) - len(lat)
-        values = wrench_status(len(statuses))
-        result['node_compute'] = {'p50_ms': float(values['compute_ms_p50']),
-                                  'p99_ms': float(values['compute_ms_p99']),
-                                  'publish_p50_ms': float(values['publish_ms_p50']),
-                                  'publish_p99_ms': float(values['publish_ms_p99'])}
-        # sustained rate: floods from a child process
-        floods = []
-        t_next = t0 + latency_s + 5.0          # > 1 s gap: each flood starts at rest
-        for rate in rates:
-            before = int(wrench_status(len(statuses))['accepted'])
+        def on_prediction(msg):
+            now = time.perf_counter()
             with cond:
-                got_before = len(received)
-            out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node', 'flood',
-                                  '--rate', str(rate), '--duration', str(flood_s),
-                                  '--start-s', str(t_next), '--frame', frame], env=env,
-                                 capture_output=True,
-                                 text=True, timeout=flood_s + 60)
-            if out.returncode != 0:
-                raise RuntimeError(out.stderr.strip().splitlines()[-1])
-            info = json.loads(out.stdout.strip().splitlines()[-1])
-            time.sleep(0.3)   # let the last predictions drain before reading the counters
-            after = int(wrench_status(len(statuses))['accepted'])
-            processed = after - before
+                received[stamp_to_ns(msg.header.stamp)] = now
+                cond.notify_all()
+
+        def on_diagnostics(msg):
             with cond:
-                got = len(received) - got_before
-            floods.append({'rate_hz': rate, 'sent': info['sent'],
-                           'achieved_send_hz': info['rate_hz'], 'processed': processed,
-                           'processed_fraction': processed / max(1, info['sent']),
-                           'processed_hz': processed / info['duration_s'],
-                           'bench_received': got, 'node_alive': proc.poll() is None})
-            t_next = info['last_stamp_s'] + 2.0
-        result['floods'] = floods
-        kept = [f['rate_hz'] for f in floods if f['processed_fraction'] >= 0.99]
-        result['sustained_rate_hz'] = max(kept) if kept else 0
-        result['max_processed_hz'] = max(f['processed_hz'] for f in floods)
+                statuses.append(read_statuses(msg))
+                cond.notify_all()
+
+        node.create_subscription(Vector3Stamped, 'predicted_displacement', on_prediction, 1000)
+        node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
+        pub = node.create_publisher(WrenchStamped, 'wrench', qos_profile_sensor_data)
+        executor_ = SingleThreadedExecutor()
+        executor_.add_node(node)
+        stop = threading.Event()
+        spinner = threading.Thread(target=lambda: [executor_.spin_once(0.05)
+                                                   for _ in iter(stop.is_set, True)], daemon=True)
+        spinner.start()
+
+        def wrench_status(after):
+            with cond:
+                cond.wait_for(lambda: any('cdpr_dynamics: wrench input' in s
+                                          for s in statuses[after:]), 10.0)
+                return next(s['cdpr_dynamics: wrench input']['values'] for s in statuses[after:]
+                            if 'cdpr_dynamics: wrench input' in s)
+
+        result = {}
+        try:
+            with cond:
+                if not cond.wait_for(lambda: pub.get_subscription_count() > 0 and statuses, 30.0):
+                    raise RuntimeError('dynamics_node did not come up')
+            frame = load_settings(config).robot.frame_id
+            # latency, published at 200 Hz, stamped 1 ms apart (one Newmark step per wrench, as
+            # for a 1 kHz controller; the node integrates stamps, not wall-clock time)
+            sent = {}
+            t0 = 100.0
+            period, dt = 1 / 200, 1e-3
+            start = time.perf_counter()
+            for k in range(int(latency_s * 200)):
+                target = start + k * period
+                while time.perf_counter() < target:
+                    time.sleep(0.0002)
+                stamp = s_to_stamp(t0 + k * dt)
+                msg = wrench_message([0.0, 0.0, 1000.0 * np.sin(2 * np.pi * 5 * k * dt)],
+                                     frame_id=frame, stamp=stamp)
+                sent[stamp_to_ns(stamp)] = time.perf_counter()
+                pub.publish(msg)
+            with cond:
+                cond.wait_for(lambda: len(received) >= len(sent), 5.0)
+            lat = [received[k] - sent[k] for k in sent if k in received]
+            result['latency'] = _percentiles(lat)
+            result['latency']['lost'] = len(sent) - len(lat)
+            values = wrench_status(len(statuses))
+            result['node_compute'] = {'p50_ms': float(values['compute_ms_p50']),
+                                      'p99_ms': float(values['compute_ms_p99']),
+                                      'publish_p50_ms': float(values['publish_ms_p50']),
+                                      'publish_p99_ms': float(values['publish_ms_p99'])}
+            # sustained rate: floods from a child process
+            floods = []
+            t_next = t0 + latency_s + 5.0          # > 1 s gap: each flood starts at rest
+            for rate in rates:
+                before = int(wrench_status(len(statuses))['accepted'])
+                with cond:
+                    got_before = len(received)
+                out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node',
+                                      'flood', '--rate', str(rate), '--duration', str(flood_s),
+                                      '--start-s', str(t_next), '--frame', frame], env=env,
+                                     capture_output=True,
+                                     text=True, timeout=flood_s + 60)
+                if out.returncode != 0:
+                    raise RuntimeError(out.stderr.strip().splitlines()[-1])
+                info = json.loads(out.stdout.strip().splitlines()[-1])
+                time.sleep(0.3)   # let the last predictions drain before reading the counters
+                after = int(wrench_status(len(statuses))['accepted'])
+                processed = after - before
+                with cond:
+                    got = len(received) - got_before
+                floods.append({'rate_hz': rate, 'sent': info['sent'],
+                               'achieved_send_hz': info['rate_hz'], 'processed': processed,
+                               'processed_fraction': processed / max(1, info['sent']),
+                               'processed_hz': processed / info['duration_s'],
+                               'bench_received': got, 'node_alive': proc.poll() is None})
+                t_next = info['last_stamp_s'] + 2.0
+            result['floods'] = floods
+            kept = [f['rate_hz'] for f in floods if f['processed_fraction'] >= 0.99]
+            result['sustained_rate_hz'] = max(kept) if kept else 0
+            result['max_processed_hz'] = max(f['processed_hz'] for f in floods)
+        finally:
+            stop.set()
+            spinner.join(2.0)
+            executor_.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown()
+            result['node_exit'] = stop_process(proc)
+            log.close()
+            reservation.release()
+        return result
     finally:
-        stop.set()
-        spinner.join(2.0)
-        executor_.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-        result['node_exit'] = stop_process(proc)
+        stop_process(proc)          # at once where the block above stopped it
         log.close()
         reservation.release()
-    return result
 
 
 def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.0) -> dict:
@@ -280,10 +285,11 @@ def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.
     folder = Path(env['ROS_LOG_DIR'])
     path = folder / 'bench.mcap'
     node = start_node(config, env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    recorder = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.record', '--output',
-                                 str(path)], env=env, stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, text=True)
+    recorder = None
     try:
+        recorder = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.record',
+                                     '--output', str(path)], env=env, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True)
         out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node', 'flood',
                               '--rate', str(rate_hz), '--duration', str(duration_s), '--frame',
                               load_settings(config).robot.frame_id], env=env,
@@ -293,7 +299,8 @@ def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.
         sent = json.loads(out.stdout.strip().splitlines()[-1])
         time.sleep(1.0)            # the node's last predictions reach the recorder
     finally:
-        stop_process(recorder)
+        if recorder is not None:
+            stop_process(recorder)
         stop_process(node)
         reservation.release()
     info = recording_info(path)
