@@ -457,8 +457,7 @@ class DynamicsNode(Node):
         self._modal_stale = True
         self._diag_dirty = True
         self._log_model_warnings()
-        if hasattr(self, 'markers_pub'):
-            self._publish_markers()
+        self._publish_markers()
 
     def _log_model_warnings(self) -> None:
         """Log the model's warnings (sag, accuracy, slack, heavy damping, fallback, time step)
