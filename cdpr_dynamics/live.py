@@ -29,7 +29,8 @@ from cdpr_dynamics.config import Settings
 from cdpr_dynamics.dynamics import DynamicsError, Newmark, PlatformSystem
 from cdpr_dynamics.feasibility import WrenchSet
 from cdpr_dynamics.models.catenary import sag_parameter
-from cdpr_dynamics.robot import quaternion_to_matrix, required_wrench
+from cdpr_dynamics.robot import (matrix_to_quaternion, quaternion_product, quaternion_to_matrix,
+                                 required_wrench, rotation_vector_quaternion)
 from cdpr_dynamics.selection import choose_model
 from cdpr_dynamics.statics import structure_of
 
@@ -71,11 +72,10 @@ class Prediction:
 def rotated_quaternion(rotation: np.ndarray, theta_rad) -> np.ndarray:
     """Quaternion (qx, qy, qz, qw) of exp([theta]x) R: the rotation vector ``theta_rad``
     (world frame, rad) applied after ``rotation``; exactly R's quaternion for theta = 0."""
-    from scipy.spatial.transform import Rotation
-    base = Rotation.from_matrix(rotation)
+    base = matrix_to_quaternion(rotation)
     if not np.any(theta_rad):
-        return base.as_quat()
-    return (Rotation.from_rotvec(np.asarray(theta_rad, dtype=float)) * base).as_quat()
+        return base
+    return quaternion_product(rotation_vector_quaternion(theta_rad), base)
 
 
 class LivePredictor:

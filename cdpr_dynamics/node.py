@@ -6,12 +6,14 @@ Subscribes ``pose`` (PoseStamped) and ``wrench`` (WrenchStamped), sensor-data Qo
 ``predicted_displacement`` (Vector3Stamped, stamped with the wrench's stamp) and
 ``predicted_pose`` (PoseStamped, same stamp) of ``node.output_point_m``, ``cable_tensions``
 (JointState: position = length m, effort = tension N; transient local, one per accepted pose)
-``cdpr_markers`` (MarkerArray of :mod:`msg_adapters.markers`, transient local: at start, on
-every rebuild, the displacement arrow at most every diagnostics tick) and ``/diagnostics``;
+``cdpr_markers`` (MarkerArray of :mod:`msg_adapters.markers`, transient local: at start and
+after rebuilds, the displacement arrow too, at most every diagnostics tick) and ``/diagnostics``;
 serves ``frequency_response`` (rcl_interfaces/srv/GetParameters).
 
 The node only wires ROS to :class:`cdpr_dynamics.live.LivePredictor` (the same core as
-``cdpr_replay``) and to :func:`cdpr_dynamics.analysis.frf_arrays`; every message conversion and
+``cdpr_replay``) and to :func:`cdpr_dynamics.analysis.frf_arrays`, which runs in a worker
+process (:mod:`cdpr_dynamics.worker`, as do the modes refreshed after rebuilds) so that the
+executor keeps serving pose and wrench during a long call; every message conversion and
 content check is in ``msg_adapters``. A bad input is rejected with a reason (diagnostics and a
 throttled log line) and the node carries on with its last good state.
 
@@ -24,7 +26,9 @@ echoed cut; SIGINT/SIGTERM end the process with status 0 within ``STOP_DEADLINE_
 """
 from __future__ import annotations
 
+import _thread
 import collections
+import functools
 import os
 import signal
 import socket
@@ -42,7 +46,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rcl_interfaces.srv import GetParameters
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
                               ParameterNotDeclaredException)
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
@@ -51,27 +55,27 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
 
-from cdpr_dynamics.analysis import (AnalysisError, build_system, damping_for, damping_warnings,
-                                    equilibrium_summary, frf_arrays, safe, system_modes)
+from cdpr_dynamics.analysis import damping_for, damping_warnings, equilibrium_summary
 from cdpr_dynamics.config import (NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS,
                                   ROS_NODE_PARAMETERS, ConfigError, Param, check_names,
                                   check_params, check_problem_size, check_value,
                                   default_config_path, node_options, read_params_file,
                                   settings_from_params)
-from cdpr_dynamics.dynamics import natural_frequencies
-from cdpr_dynamics.live import LivePredictor, time_step_warnings
+from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.worker import JobFailed, Worker, modes_job
 from msg_adapters import diagnostics as diag
-from msg_adapters.displacement import displacement_message
+from msg_adapters.displacement import displacement_message, fill_displacement
 from msg_adapters.frf_service import (ARRAYS, pack_response, parse_request, response_size_error,
                                       settings_changes)
 from msg_adapters.joint_state import tensions_message
 from msg_adapters.markers import equilibrium_markers, update_arrow
-from msg_adapters.pose import pose_message
+from msg_adapters.pose import fill_pose, pose_message
 from msg_adapters.inputs import NUMERIC_ERRORS, InputHandler, first_line
 from msg_adapters.stamps import StampPolicy
 from msg_adapters.validation import InvalidMessage, clip, ns_to_stamp, s_to_stamp, stamp_to_ns
 
 NODE_NAME = 'cdpr_dynamics'
+IO_SUFFIX = '_io'         # the companion node of pose and wrench: '<name>_io', same namespace
 
 #: Fixed for the life of the node: the robot itself and what is set up once.
 READ_ONLY = {'robot.frame_id', 'robot.anchors', 'robot.attachments', 'robot.initial_position',
@@ -84,6 +88,19 @@ LOG_PERIOD_S = 1.0
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
 STOP_DEADLINE_S = 0.8     # after SIGINT/SIGTERM the process ends within this, cleanly or not
+MODES_PERIOD_S = 0.5      # modes refreshed after rebuilds at most this often (a moving pose
+#                           rebuilds at 50 Hz and more; its modes change slowly)
+
+
+def _locked(method):
+    """Run a callback under the node's lock: the pose and wrench callbacks (main thread) and
+    the parameter, service, guard and timer callbacks (the services thread) share the
+    predictor."""
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+    return wrapper
 
 
 def _descriptor(param: Param) -> ParameterDescriptor:
@@ -204,8 +221,15 @@ class InputHealth:
 class DynamicsNode(Node):
     """The ``cdpr_dynamics`` node: see the module docstring."""
 
-    def __init__(self, **kwargs):
+    def __init__(self, io_arguments: list | None = None, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
+        # the pose and wrench path's own node, spun alone (see :func:`main`); one lock keeps
+        # its callbacks and those of this node (parameters, service, timer) apart
+        self._lock = threading.RLock()
+        self.io = Node(f'{self.get_name()}{IO_SUFFIX}', namespace=self.get_namespace(),
+                       context=self.context, cli_args=io_arguments,
+                       use_global_arguments=io_arguments is None,
+                       start_parameter_services=False, enable_rosout=False)
         self._flat = self._declare_parameters()
         node_options(self._flat)          # node.* values and choices, as the tools check them
         self.settings = settings_from_params(self._flat)
@@ -231,6 +255,12 @@ class DynamicsNode(Node):
         self._lowest_hz = float('nan')
         self._platform_hz = np.zeros(0)     # classified platform modes up to frf.f_max_hz
         self._modal_stale = False           # a rebuild since: refreshed before diagnostics
+        self._worker = Worker()             # FRF calls and modes refreshes, off the executor
+        self._frf_pending = collections.deque()    # _PendingCall in request order
+        self._inflight = {}                 # cache key -> the worker's future
+        self._modes_future = None
+        self._modes_revision = -1
+        self._modes_asked = -np.inf
         logger = self.get_logger()
         self.pose_health = InputHealth(logger.get_child('pose'), diag.ERROR)
         self.wrench_health = InputHealth(logger.get_child('wrench'), diag.WARN)
@@ -243,18 +273,22 @@ class DynamicsNode(Node):
                             durability=qos_profile_sensor_data.durability)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.displacement_pub = self.create_publisher(Vector3Stamped, 'predicted_displacement',
-                                                      10)
-        self.pose_pub = self.create_publisher(PoseStamped, 'predicted_pose', 10)
+        self.displacement_pub = self.io.create_publisher(Vector3Stamped,
+                                                         'predicted_displacement', 10)
+        self.pose_pub = self.io.create_publisher(PoseStamped, 'predicted_pose', 10)
+        # one message per output topic, filled per wrench (publish serialises it at once)
+        self._displacement_msg = displacement_message(np.zeros(3), self.frame_id, s_to_stamp(0.0))
+        self._pose_msg = pose_message(np.zeros(3), (0.0, 0.0, 0.0, 1.0), self.frame_id)
         self.tensions_pub = self.create_publisher(JointState, 'cable_tensions', latched)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.markers_pub = self.create_publisher(MarkerArray, 'cdpr_markers', latched)
         self._markers_arrow = None
         self._markers = None
-        self.pose_sub = self.create_subscription(PoseStamped, 'pose', self.on_pose,
-                                                 qos_profile_sensor_data)
-        self.wrench_sub = self.create_subscription(WrenchStamped, 'wrench', self.on_wrench,
-                                                   sensor)
+        self._markers_stale = False
+        self.pose_sub = self.io.create_subscription(PoseStamped, 'pose', self.on_pose,
+                                                    qos_profile_sensor_data)
+        self.wrench_sub = self.io.create_subscription(WrenchStamped, 'wrench', self.on_wrench,
+                                                      sensor)
         # calls wait in a queue of node.frf_queue_depth (rclpy's default holds 10 and DDS drops
         # the oldest beyond it without a word): each waiting call is answered in turn
         service_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
@@ -264,6 +298,8 @@ class DynamicsNode(Node):
         self.frf_service = self.create_service(GetParameters, 'frequency_response',
                                                self.on_frequency_response,
                                                qos_profile=service_qos)
+        self.frf_service.send_response = self._send_frf_response
+        self._worker_guard = self.create_guard_condition(self._answer_ready)
         self._configure_introspection(self._flat['node.service_introspection'])
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self._make_set_parameters_atomic()
@@ -278,6 +314,12 @@ class DynamicsNode(Node):
                     f'{np.round(self.predictor.position_m, 4).tolist()} m in '
                     f'{clip(repr(self.frame_id))}; waiting for pose and wrench')
         self._log_model_warnings()
+
+    def destroy_node(self):
+        """Stop the worker process, then the pose and wrench node and this one."""
+        self._worker.close()
+        self.io.destroy_node()
+        return super().destroy_node()
 
     # ---------------------------------------------------------------------- parameters
 
@@ -323,6 +365,7 @@ class DynamicsNode(Node):
         except (InvalidParameterTypeException, InvalidParameterValueException) as err:
             raise ConfigError(f'parameter {param.name}: {first_line(err)}') from None
 
+    @_locked
     def on_set_parameters(self, params) -> SetParametersResult:
         """Validate a runtime change as a whole, apply it, or reject it with the reason.
 
@@ -355,7 +398,6 @@ class DynamicsNode(Node):
         self.inputs.policy = StampPolicy.from_options(flat)
         if analysis_changed:
             self._rebuilt(update)
-            self._update_modal()
             self._publish_tensions(self._pose_stamp or self.get_clock().now().to_msg())
             self.get_logger().info(
                 'parameters ' + ', '.join(f'{p.name}={clip(_plain(p.value))}' for p in params)
@@ -394,6 +436,7 @@ class DynamicsNode(Node):
 
     # -------------------------------------------------------------------------- inputs
 
+    @_locked
     def on_pose(self, msg: PoseStamped) -> None:
         """Move the model to the pose; rebuild only when it moved more than the tolerance."""
         try:
@@ -420,6 +463,7 @@ class DynamicsNode(Node):
                 break
             self._handle_wrench(msg)
 
+    @_locked
     def _handle_wrench(self, msg: WrenchStamped) -> None:
         """Advance the integrator to the wrench's stamp and publish the prediction."""
         start = time.perf_counter()
@@ -431,11 +475,11 @@ class DynamicsNode(Node):
         stamp = msg.header.stamp if self.inputs.last_wrench_ns == stamp_to_ns(msg.header.stamp) \
             else ns_to_stamp(self.inputs.last_wrench_ns)     # an unstamped one: its arrival
         out = self.predictor.prediction(self._flat['node.output_point_m'])
-        prediction = displacement_message(out.displacement_m, self.frame_id, stamp)
-        pose = pose_message(out.position_m, out.quaternion, self.frame_id, stamp)
+        fill_displacement(self._displacement_msg, out.displacement_m, stamp)
+        fill_pose(self._pose_msg, out.position_m, out.quaternion, stamp)
         computed = time.perf_counter()
-        self.displacement_pub.publish(prediction)
-        self.pose_pub.publish(pose)
+        self.displacement_pub.publish(self._displacement_msg)
+        self.pose_pub.publish(self._pose_msg)
         if self.wrench_health.accept():
             self._diag_dirty = True
         if self.inputs.notice:
@@ -457,7 +501,7 @@ class DynamicsNode(Node):
         self._modal_stale = True
         self._diag_dirty = True
         self._log_model_warnings()
-        self._publish_markers()
+        self._markers_stale = True        # published by the next diagnostics tick
 
     def _log_model_warnings(self) -> None:
         """Log the model's warnings (sag, accuracy, slack, heavy damping, fallback, time step)
@@ -504,25 +548,50 @@ class DynamicsNode(Node):
         out = self.predictor.prediction(self._flat['node.output_point_m'])
         pose_message(out.position_m, out.quaternion, self.frame_id, s_to_stamp(0.0))
 
+    def _modes_args(self) -> tuple:
+        assembly = self.predictor.system.assembly
+        return (self.predictor.settings, self.predictor.eq, assembly.method,
+                assembly.elements_per_cable, self.predictor.max_steps_per_wrench)
+
     def _update_modal(self) -> None:
-        """Classified modes (the lowest platform mode), damping and time-step warnings: on
-        start, on settings changes and before the diagnostics that follow a rebuild."""
+        """Classified modes (the lowest platform mode), damping and time-step warnings of the
+        current model, computed here: at start, before the node serves anything."""
         self._modal_stale = False
         try:
-            found = safe(system_modes, self.predictor.settings, self.predictor.system)
-            freqs = (safe(natural_frequencies, self.predictor.system, 12) if found is None
-                     else found.frequency_hz)
-            self._platform_hz = np.zeros(0) if found is None else found.platform_hz
-            positive = np.asarray(freqs)[np.asarray(freqs) > 0]
-            self._step_warnings = time_step_warnings(
-                self.predictor.settings, self.predictor.system,
-                float(positive[0]) if positive.size else float('nan'),
-                self.predictor.max_steps_per_wrench)
-            self._set_modal(freqs)
+            self._apply_modes(modes_job(*self._modes_args()))
         except NUMERIC_ERRORS as exc:
             self._modal_warnings = [f'natural frequencies failed: {first_line(exc)}']
-        if hasattr(self, '_logged_warning_kinds'):   # after start: damping, time step changed
-            self._log_model_warnings()
+
+    def _refresh_modal(self) -> None:
+        """After a rebuild: the same in the worker process (:meth:`_take_modes` applies it),
+        one job at a time; the diagnostics keep the previous model's values meanwhile."""
+        if self._modes_future is not None:
+            return
+        self._modal_stale = False
+        self._modes_revision = self.revision
+        self._modes_asked = time.monotonic()
+        self._modes_future = self._worker.submit('modes', *self._modes_args())
+        self._modes_future.add_done_callback(self._wake)
+
+    def _take_modes(self) -> None:
+        future = self._modes_future
+        if future is None or not future.done():
+            return
+        self._modes_future = None
+        if self._modes_revision != self.revision:      # rebuilt since: ask again
+            self._modal_stale = True
+            return
+        try:
+            self._apply_modes(future.result())
+        except Exception as exc:  # noqa: BLE001 - JobFailed, WorkerError: reported, kept going
+            self._modal_warnings = [f'natural frequencies failed: {first_line(exc)}']
+        self._diag_dirty = True
+        self._log_model_warnings()    # damping, time step may have changed
+
+    def _apply_modes(self, found: dict) -> None:
+        self._platform_hz = found['platform_hz']
+        self._step_warnings = found['step_warnings']
+        self._set_modal(found['frequency_hz'])
 
     def _set_modal(self, freqs) -> None:
         freqs = np.asarray(freqs)
@@ -532,38 +601,120 @@ class DynamicsNode(Node):
 
     # ------------------------------------------------------------------------- service
 
+    @_locked
     def on_frequency_response(self, request, response):
-        """FRF at the current pose and tensions; overrides for this call; reasons as STRING."""
-        start = time.perf_counter()
-        parsed = parse_request(request.names)
+        """FRF at the current pose and tensions; overrides for this call; reasons as STRING.
+
+        Refusals and cached results are answered at once; anything to compute goes to the
+        worker process (:mod:`cdpr_dynamics.worker`) while the executor keeps serving pose and
+        wrench: the callback returns a :class:`_PendingCall` and the answer is sent when the
+        worker is done (:meth:`_answer_ready`). Answers leave in request order: a call that
+        could be answered at once waits behind the calls before it."""
+        call = _PendingCall(parse_request(request.names), response, time.perf_counter())
         self._frf['calls'] += 1
-        arrays, error = None, parsed.error
-        if not error:      # refuse what is too large before any work (node.frf_max_*)
-            error = self._frf_limits(parsed)
+        parsed = call.parsed
+        error = parsed.error or self._frf_limits(parsed)  # refused before any work
         if not error and any(name in ARRAYS for name in parsed.names):
             key = (self.revision, parsed.key())
             if key in self._frf_cache:
                 self._frf_cache.move_to_end(key)
-                arrays, error = self._frf_cache[key]
+                call.result = self._frf_cache[key]
                 self._frf['cache_hits'] += 1
+            elif len(self._frf_pending) >= self._flat['node.frf_queue_depth']:
+                call.result = (None, f'frequency response busy: {len(self._frf_pending)} calls '
+                                     'waiting (node.frf_queue_depth); call again later')
             else:
+                call.key = key
                 try:
-                    arrays = self._compute_frf(parsed.overrides)
-                except NUMERIC_ERRORS as exc:
-                    error = f'frequency response failed: {first_line(exc)}'
-                except Exception as exc:
-                    error = f'frequency response failed: {type(exc).__name__}: {exc}'
-                if self._flat['node.frf_cache_size'] > 0:
-                    self._frf_cache[key] = (arrays, error)
-                    while len(self._frf_cache) > self._flat['node.frf_cache_size']:
-                        self._frf_cache.popitem(last=False)
+                    call.future = (self._inflight.get(key)
+                                   or self._submit_frf(parsed.overrides, key))
+                except NUMERIC_ERRORS as exc:     # overrides the settings refuse
+                    call.result = (None, f'frequency response failed: {first_line(exc)}')
+        else:
+            call.result = (None, error)
+        if call.result is not None and not self._frf_pending:
+            return self._answer(call)
+        self._frf_pending.append(call)
+        return call       # its header arrives in _send_frf_response; answered in order
+
+    def _submit_frf(self, overrides: dict, key):
+        """Queue the FRF of this call at the current state on the worker (a future)."""
+        settings = self.predictor.settings
+        changes = settings_changes(overrides, settings.frf_force_n, settings.frf_moment_nm)
+        if changes:
+            settings = settings.replace(**changes)
+        if 'method' in changes or 'elements_per_cable' in changes:
+            method, elements = settings.method, settings.elements_per_cable
+        else:       # the model the node integrates (auto's choice, or the fallback)
+            assembly = self.predictor.system.assembly
+            method, elements = assembly.method, assembly.elements_per_cable
+        future = self._worker.submit('frf', settings, self.predictor.eq, method, elements)
+        self._inflight[key] = future
+        future.add_done_callback(self._wake)
+        return future
+
+    def _wake(self, _future) -> None:
+        """From the worker's thread: run :meth:`_answer_ready` on the executor."""
+        try:
+            self._worker_guard.trigger()
+        except Exception:  # noqa: BLE001 - the node is being destroyed: nothing to answer
+            pass
+
+    def _send_frf_response(self, response, header) -> None:
+        """The service's ``send_response`` (the executor calls it with the callback's return
+        value): a :class:`_PendingCall` keeps the header for its answer later."""
+        if isinstance(response, _PendingCall):
+            response.header = header
+            self._answer_ready()
+            return
+        type(self.frf_service).send_response(self.frf_service, response, header)
+
+    @_locked
+    def _answer_ready(self) -> None:
+        """Send the waiting answers whose results are in, oldest first (request order), and
+        take the worker's modes if they are in."""
+        self._take_modes()
+        while self._frf_pending:
+            call = self._frf_pending[0]
+            if call.header is None or (call.result is None and not call.future.done()):
+                return
+            self._frf_pending.popleft()
+            if call.result is None:
+                call.result = self._frf_result(call)
+            message = self._answer(call)
+            try:
+                type(self.frf_service).send_response(self.frf_service, message, call.header)
+            except Exception as exc:  # noqa: BLE001 - the client left or the node is stopping
+                self.get_logger().warning(f'frequency_response answer not sent: {exc}',
+                                          throttle_duration_sec=LOG_PERIOD_S)
+
+    def _frf_result(self, call) -> tuple:
+        """(arrays, error) of a finished worker job, cached by state; the node's own model's
+        natural frequencies (no overrides) refresh its modal warnings."""
+        self._inflight.pop(call.key, None)
+        try:
+            arrays, error = call.future.result(), ''
+        except JobFailed as exc:
+            arrays, error = None, f'frequency response failed: {exc}'
+        except Exception as exc:  # noqa: BLE001 - WorkerError: the process died
+            arrays, error = None, f'frequency response failed: {type(exc).__name__}: {exc}'
+        if self._flat['node.frf_cache_size'] > 0:
+            self._frf_cache[call.key] = (arrays, error)
+            while len(self._frf_cache) > self._flat['node.frf_cache_size']:
+                self._frf_cache.popitem(last=False)
+        if arrays is not None and not call.parsed.overrides and call.key[0] == self.revision:
+            self._set_modal(arrays['natural_frequencies_hz'])
+        return arrays, error
+
+    def _answer(self, call) -> GetParameters.Response:
+        arrays, error = call.result
         if error:
             self._frf['failures'] += 1
             self._frf['last_error'] = error
             self.get_logger().warning(error, throttle_duration_sec=LOG_PERIOD_S)
-        self._frf['last_ms'] = (time.perf_counter() - start) * 1e3
+        self._frf['last_ms'] = (time.perf_counter() - call.start) * 1e3
         self._diag_dirty = True
-        return pack_response(parsed.names, arrays, error, response)
+        return pack_response(call.parsed.names, arrays, error, call.response)
 
     def _frf_limits(self, parsed) -> str:
         """Why a request is refused before any work ('' if it is not): more points than
@@ -584,28 +735,17 @@ class DynamicsNode(Node):
                 error = f'frequency response refused: {first_line(exc)}'
         return error
 
-    def _compute_frf(self, overrides: dict) -> dict:
-        settings = self.predictor.settings
-        changes = settings_changes(overrides, settings.frf_force_n, settings.frf_moment_nm)
-        if changes:
-            settings = settings.replace(**changes)
-        if 'method' in changes or 'elements_per_cable' in changes:
-            system = safe(build_system, settings, self.predictor.eq)
-        else:       # the model the node integrates (auto's choice, or the fallback)
-            system = self.predictor.system
-        if not system.assembly.valid:
-            raise AnalysisError(f'method {system.assembly.method} is not valid for this state: '
-                                + '; '.join(system.assembly.warnings))
-        arrays = safe(frf_arrays, settings, system)
-        if not overrides:
-            self._set_modal(arrays['natural_frequencies_hz'])
-        return arrays
-
     # --------------------------------------------------------------------- diagnostics
 
+    @_locked
     def on_diagnostics_timer(self) -> None:
+        """Markers (rebuilt ones at most every tick, CHANGE_PERIOD_S: building them costs
+        milliseconds, poses come at 50 Hz and more) and diagnostics when something changed."""
         arrow = self.predictor.prediction().displacement_m * self._flat['node.marker_scale']
-        if not np.array_equal(arrow, self._markers_arrow):   # the arrow: at most every tick
+        if self._markers_stale:
+            self._markers_stale = False
+            self._publish_markers()
+        elif not np.array_equal(arrow, self._markers_arrow):   # the arrow: every tick at most
             self._publish_markers(rebuilt=False)
         now = time.monotonic()
         if self._diag_dirty or now - self._diag_last >= self._flat['node.diagnostics_period_s']:
@@ -617,8 +757,8 @@ class DynamicsNode(Node):
         """The node's DiagnosticArray: model, pose input, wrench input, frequency_response."""
         hw = self.get_fully_qualified_name()
         name = self.get_name()
-        if self._modal_stale:
-            self._update_modal()
+        if self._modal_stale and time.monotonic() - self._modes_asked >= MODES_PERIOD_S:
+            self._refresh_modal()
         statuses = [self._model_status(name, hw)]
         for title, health, extra in (('pose input', self.pose_health, {}),
                                      ('wrench input', self.wrench_health, self._wrench_stats())):
@@ -675,6 +815,18 @@ class DynamicsNode(Node):
         recent = times[times > time.perf_counter() - 1.0]
         values['rate_hz'] = float(recent.size)
         return values
+
+
+class _PendingCall:
+    """A frequency_response call until it is answered: the parsed request, its response
+    object, when it came, its cache key and worker future (or its result), its header."""
+
+    def __init__(self, parsed, response, start: float):
+        self.parsed, self.response, self.start = parsed, response, start
+        self.key = None
+        self.future = None
+        self.result = None       # (arrays, error) once known
+        self.header = None
 
 
 def _equilibrium_values(settings, eq) -> dict:
@@ -814,17 +966,31 @@ def main(args=None):
     stopper = Stopper()
     node = None
     status = 0
+    services = SingleThreadedExecutor()
+    failed: list[BaseException] = []
+    thread = None
     try:
-        node = DynamicsNode()
-        rclpy.spin(node)
+        node = DynamicsNode(io_arguments=_io_arguments(args))
+        services.add_node(node)
+        thread = threading.Thread(target=_serve, args=(services, failed), name='cdpr_services',
+                                  daemon=True)
+        thread.start()
+        lean = SingleThreadedExecutor()       # the pose and wrench path, alone
+        lean.add_node(node.io)
+        lean.spin()
     except (Stopped, KeyboardInterrupt, ExternalShutdownException):
         pass
     except NUMERIC_ERRORS as exc:
-        print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
-        status = 1
+        failed.append(exc)
     finally:
+        if failed and not stopper.signalled:
+            print(f'dynamics_node: error: {first_line(failed[0])}', file=sys.stderr)
+            status = 1
         stopper.stopping(status)
         try:
+            services.shutdown(timeout_sec=0.2)
+            if thread is not None:
+                thread.join(0.2)
             if node is not None:
                 node.destroy_node()
             rclpy.try_shutdown()
@@ -836,6 +1002,42 @@ def main(args=None):
         # (seconds under load, with the default signal dispositions back) is skipped
         stopper.exit(status)
     return status
+
+
+def _serve(executor, failed: list) -> None:
+    """The services thread: parameters, frequency_response, the worker's answers, the
+    diagnostics timer. A callback that raises ends the node as one in the main thread would
+    (``failed`` keeps the error for :func:`main`)."""
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
+    except Exception as exc:  # noqa: BLE001 - reported by main with one line, status 1
+        failed.append(exc)
+        _thread.interrupt_main()
+
+
+def _io_arguments(argv) -> list:
+    """ROS arguments for the companion pose and wrench node: the remap rules of ``argv`` that
+    concern it (global ones but a node rename, and those addressed to this node's name,
+    without the name), in the same namespace; no parameters (it declares none)."""
+    name, rules, args = NODE_NAME, [], iter(argv[1:])
+    for arg in args:
+        if arg in ('-r', '--remap'):
+            rules.append(next(args, ''))
+    for rule in rules:
+        target, _, value = rule.partition(':=')
+        node, _, key = target.rpartition(':')
+        if node in ('', NODE_NAME) and key in ('__node', '__name'):
+            name = value
+    out = []
+    for rule in rules:
+        target, _, value = rule.partition(':=')
+        node, _, key = target.rpartition(':')
+        if key in ('__node', '__name') or node not in ('', NODE_NAME, name):
+            continue
+        out += ['-r', f'{key}:={value}']
+    return ['--ros-args'] + out if out else []
 
 
 class Stopped(BaseException):

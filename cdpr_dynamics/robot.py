@@ -18,11 +18,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 
 #: Names of the wrench components (force, then moment), as messages name a direction.
 WRENCH_AXES = ('force x', 'force y', 'force z', 'moment x', 'moment y', 'moment z')
+#: Names of the platform DOFs (translation, then small rotation), as figures name a direction.
+DOF_NAMES = ('x', 'y', 'z', 'rx', 'ry', 'rz')
 
 
 class GeometryError(ValueError):
@@ -37,6 +41,46 @@ def quaternion_to_matrix(q) -> np.ndarray:
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ])
+
+
+def matrix_to_quaternion(rotation) -> np.ndarray:
+    """Unit quaternion ``(qx, qy, qz, qw)`` of a rotation matrix (Shepperd's method: from the
+    largest of the diagonal and the trace, as scipy's ``Rotation.from_matrix`` picks it, so
+    the sign agrees with scipy's). Scalar arithmetic: microseconds, for every prediction."""
+    r = [[float(v) for v in row] for row in np.asarray(rotation)]
+    trace = r[0][0] + r[1][1] + r[2][2]
+    decision = (r[0][0], r[1][1], r[2][2], trace)
+    i = max(range(4), key=decision.__getitem__)
+    q = [0.0] * 4
+    if i == 3:
+        q = [r[2][1] - r[1][2], r[0][2] - r[2][0], r[1][0] - r[0][1], 1.0 + trace]
+    else:
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[i] = 1.0 - trace + 2.0 * r[i][i]
+        q[j] = r[j][i] + r[i][j]
+        q[k] = r[k][i] + r[i][k]
+        q[3] = r[k][j] - r[j][k]
+    norm = math.sqrt(sum(v * v for v in q))
+    return np.array(q) / norm
+
+
+def rotation_vector_quaternion(theta_rad) -> np.ndarray:
+    """Quaternion of the rotation vector ``theta_rad`` (axis times angle, rad):
+    (sin(a/2) theta/a, cos(a/2)), a = |theta|; its series below a = 1e-4."""
+    x, y, z = (float(v) for v in theta_rad)
+    angle = math.sqrt(x * x + y * y + z * z)
+    half = 0.5 - angle * angle / 48.0 if angle < 1e-4 else math.sin(angle / 2.0) / angle
+    return np.array([half * x, half * y, half * z, math.cos(angle / 2.0)])
+
+
+def quaternion_product(p, q) -> np.ndarray:
+    """Hamilton product p q of quaternions ``(x, y, z, w)``: the rotation q, then p."""
+    px, py, pz, pw = (float(v) for v in p)
+    qx, qy, qz, qw = (float(v) for v in q)
+    return np.array([pw * qx + px * qw + py * qz - pz * qy,
+                     pw * qy + py * qw + pz * qx - px * qz,
+                     pw * qz + pz * qw + px * qy - py * qx,
+                     pw * qw - px * qx - py * qy - pz * qz])
 
 
 def skew(v: np.ndarray) -> np.ndarray:

@@ -48,9 +48,16 @@ def pose_message(position_m, quaternion=(0.0, 0.0, 0.0, 1.0), frame_id: str = 'w
     """A PoseStamped from arrays (``stamp``: builtin_interfaces/Time, default zero)."""
     msg = PoseStamped()
     msg.header.frame_id = frame_id
+    return fill_pose(msg, position_m, quaternion, stamp)
+
+
+def fill_pose(msg: PoseStamped, position_m, quaternion, stamp=None) -> PoseStamped:
+    """Write a pose (and ``stamp`` unless None) into an existing message (reused per topic)."""
     if stamp is not None:
         msg.header.stamp = stamp
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, position_m)
+    p = msg.pose.position
+    p.x, p.y, p.z = float(position_m[0]), float(position_m[1]), float(position_m[2])
     o = msg.pose.orientation
-    o.x, o.y, o.z, o.w = map(float, quaternion)
+    o.x, o.y, o.z, o.w = (float(quaternion[0]), float(quaternion[1]), float(quaternion[2]),
+                          float(quaternion[3]))
     return msg

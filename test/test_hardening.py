@@ -426,6 +426,36 @@ def frf_call(node, names, timeout_s=60.0):
     return client.call_async(GetParameters.Request(names=list(names)))
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (s), from /proc/<pid>/stat."""
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def process_alive(pid: int) -> bool:
+    """True while ``pid`` exists and is not a zombie."""
+    try:
+        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z'
+    except OSError:
+        return False
+
+
+def wait_for_worker(pid: int, timeout_s: float = 60.0) -> int:
+    """The pid of the node's worker process (cdpr_dynamics.worker), once it has started."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for task in Path(f'/proc/{pid}/task').iterdir():
+            for child in (task / 'children').read_text().split():
+                try:
+                    command = Path(f'/proc/{child}/cmdline').read_bytes()
+                except OSError:
+                    continue
+                if b'spawn_main' in command:
+                    return int(child)
+        time.sleep(0.05)
+    raise AssertionError(f'no worker process of the node {pid} after {timeout_s} s')
+
+
 def shutdown_case(tmp_path, case: str) -> dict:
     """One run: start the node, load it (flood, or a long FRF call), signal, measure."""
     import signal
@@ -435,22 +465,28 @@ def shutdown_case(tmp_path, case: str) -> dict:
         if case == 'frf':
             load.flood(200.0)
             load.wait_predictions(20)
+            worker = wait_for_worker(load.proc.pid)
+            busy = cpu_seconds(worker)
             future = frf_call(load.node, ['amplitude_z_m', 'elements_per_cable=400',
                                           'method=fem', 'n_points=20000'])
-            # the node is inside the call once predictions stop arriving
-            count, quiet_since = load.predictions, time.monotonic()
-            deadline = time.monotonic() + 30.0
-            while time.monotonic() - quiet_since < 0.3 and time.monotonic() < deadline:
-                if load.predictions != count:
-                    count, quiet_since = load.predictions, time.monotonic()
+            # the call is being computed once the worker process has worked a second on it;
+            # meanwhile the node goes on predicting (the call is not on its executor)
+            deadline = time.monotonic() + 60.0
+            while cpu_seconds(worker) - busy < 1.0 and time.monotonic() < deadline:
                 time.sleep(0.01)
             assert not future.done(), 'the FRF call ended before the signal'
+            load.wait_predictions(20)
             signals = [signal.SIGTERM]
         else:
             load.flood(2000.0)
             load.wait_predictions(500)
             signals = [signal.SIGTERM] if case == 'sigterm' else [signal.SIGINT, signal.SIGINT]
         status, seconds = load.signal_and_wait(signals)
+        if case == 'frf':      # the worker ends with the node (it is not left computing)
+            deadline = time.monotonic() + 2.0
+            while Path(f'/proc/{worker}').exists() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert not process_alive(worker), f'the worker {worker} outlived the node'
         text = load.log()
         return {'case': case, 'status': status, 'seconds': round(seconds, 3),
                 'traceback': 'Traceback' in text or 'RCLError' in text,

@@ -158,9 +158,14 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
               'replay': bench_replay(2.0 if quick else 20.0)}
     if dds_config:
         result['dds'] = bench_node.dds(dds_config, rates=(1000, 5000) if quick else
-                                       (1000, 2000, 3000, 5000, 8000))
+                                       (1000, 2000, 3000, 5000, 8000),
+                                       latency_s=2.0 if quick else 5.0,
+                                       frf_call_points=1000 if quick else
+                                       bench_node.FRF_CALL_POINTS)
         result['recording'] = bench_node.recording_throughput(dds_config,
                                                               duration_s=1.0 if quick else 3.0)
+        result['controller'] = bench_node.controller_rate(dds_config,
+                                                          duration_s=2.0 if quick else 10.0)
     return result
 
 
@@ -193,15 +198,34 @@ def summary(result: dict) -> str:
                      "real time)")
     if 'dds' in result:
         dds = result['dds']
+        echo, ratio = dds['echo_latency'], dds['latency_over_echo']
         lines.append(f"DDS wrench -> prediction latency p50/p99 {dds['latency']['p50_ms']:.2f}/"
-                     f"{dds['latency']['p99_ms']:.2f} ms; node compute p50/p99 "
+                     f"{dds['latency']['p99_ms']:.2f} ms (an rclpy echo node {echo['p50_ms']:.2f}/"
+                     f"{echo['p99_ms']:.2f} ms: x{ratio['p50_ms']:.2f}/x{ratio['p99_ms']:.2f})"
+                     "; node compute p50/p99 "
                      f"{dds['node_compute']['p50_ms']:.3f}/{dds['node_compute']['p99_ms']:.3f} "
                      f"ms; sustained {dds['sustained_rate_hz']} Hz (max processed "
                      f"{dds['max_processed_hz']:.0f}/s)")
+        call = dds['during_frf_call']
+        lines.append(f"during a {call['points']}-point fem_sag 64 FRF call "
+                     f"({call['call_s']:.2f} s): {call['sent_during_call']} wrenches, "
+                     f"{call['lost_during_call']} lost, latency p50 {call['during']['p50_ms']:.2f}"
+                     f" ms (x{call['p50_during_over_before']:.2f} of before), longest gap "
+                     f"{call['longest_gap_ms']:.1f} ms")
         rec = result['recording']
         lines.append(f"cdpr_record beside the node under a 5 kHz wrench flood: "
                      f"{rec['messages_per_s']:.0f} messages/s recorded, "
                      f"{rec['bytes_per_message']:.0f} bytes/message (file)")
+        ctl = result['controller']
+        lines.append(
+            f"controller {ctl['wrench_hz']:.0f} Hz wrenches + {ctl['pose_hz']:.0f} Hz moving "
+            f"poses ({ctl['method']}) with cdpr_record, {ctl['duration_s']:.0f} s: published "
+            f"{ctl['published']['wrench']}/{ctl['published']['pose']}, recorded "
+            f"{ctl['recorded'].get('wrench', 0)}/{ctl['recorded'].get('pose', 0)} "
+            f"(+{ctl['recorded'].get('predicted_displacement', 0)} predictions), predicted "
+            f"{ctl['predicted']} ({100 * ctl['predicted_fraction']:.2f} %), poses accepted "
+            f"{ctl['poses_accepted']}; pose update p50/p99 {ctl['update_ms_p50']:.2f}/"
+            f"{ctl['update_ms_p99']:.2f} ms")
     return '\n'.join(lines)
 
 

@@ -29,6 +29,8 @@ import numpy as np
 
 from cdpr_dynamics.config import load_settings
 
+FRF_CALL_POINTS = 20000     # the large call of the wrench-path-during-a-call figure
+
 
 def _percentiles(seconds) -> dict:
     ms = np.asarray(seconds) * 1e3
@@ -145,7 +147,7 @@ def _ros_session(tag: str):
 
 
 def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
-        latency_s: float = 5.0) -> dict:
+        latency_s: float = 5.0, frf_call_points: int = FRF_CALL_POINTS) -> dict:
     """Latency and sustained rate over DDS against a dynamics_node child process."""
     import rclpy
     from geometry_msgs.msg import Vector3Stamped, WrenchStamped
@@ -155,15 +157,17 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
     from rclpy.qos import qos_profile_sensor_data
     from rclpy.signals import SignalHandlerOptions
 
+    from rcl_interfaces.srv import GetParameters
+
     from cdpr_dynamics.node_process import start_node, stop_process
     from msg_adapters.diagnostics import read_statuses
+    from msg_adapters.frf_service import request_message
     from msg_adapters.validation import s_to_stamp, stamp_to_ns
     from msg_adapters.wrench import wrench_message
 
     reservation, env = _ros_session('bench')
     log = open(Path(env['ROS_LOG_DIR']) / 'node.log', 'w')
-    proc = start_node(config, env, stdout=log,
-                      stderr=subprocess.STDOUT)
+    proc = None
     try:          # from here on a Ctrl-C anywhere still stops the node (its own session)
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: one line in main
         node = Node('cdpr_bench')
@@ -198,32 +202,105 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
                 return next(s['cdpr_dynamics: wrench input']['values'] for s in statuses[after:]
                             if 'cdpr_dynamics: wrench input' in s)
 
-        result = {}
-        try:
-            with cond:
-                if not cond.wait_for(lambda: pub.get_subscription_count() > 0 and statuses, 30.0):
-                    raise RuntimeError('dynamics_node did not come up')
-            frame = load_settings(config).robot.frame_id
-            # latency, published at 200 Hz, stamped 1 ms apart (one Newmark step per wrench, as
-            # for a 1 kHz controller; the node integrates stamps, not wall-clock time)
+        frame = load_settings(config).robot.frame_id
+        t0 = 100.0
+
+        def latency(t_start):
+            """Wrench -> prediction, published at 200 Hz, stamped 1 ms apart (one Newmark step
+            per wrench, as for a 1 kHz controller; the node integrates stamps, not wall-clock
+            time)."""
             sent = {}
-            t0 = 100.0
             period, dt = 1 / 200, 1e-3
             start = time.perf_counter()
             for k in range(int(latency_s * 200)):
                 target = start + k * period
                 while time.perf_counter() < target:
                     time.sleep(0.0002)
-                stamp = s_to_stamp(t0 + k * dt)
+                stamp = s_to_stamp(t_start + k * dt)
                 msg = wrench_message([0.0, 0.0, 1000.0 * np.sin(2 * np.pi * 5 * k * dt)],
                                      frame_id=frame, stamp=stamp)
                 sent[stamp_to_ns(stamp)] = time.perf_counter()
                 pub.publish(msg)
             with cond:
-                cond.wait_for(lambda: len(received) >= len(sent), 5.0)
+                cond.wait_for(lambda: all(k in received for k in sent), 5.0)
             lat = [received[k] - sent[k] for k in sent if k in received]
-            result['latency'] = _percentiles(lat)
-            result['latency']['lost'] = len(sent) - len(lat)
+            out = _percentiles(lat)
+            out['lost'] = len(sent) - len(lat)
+            return out
+
+        client = node.create_client(GetParameters, 'frequency_response')
+
+        def during_call(t_start):
+            """The latency of wrenches sent while a 20000-point fem_sag 64 FRF call is served
+            (200 Hz, as :func:`latency`), against those before it; the longest wait."""
+            if not client.wait_for_service(timeout_sec=30.0):
+                raise RuntimeError('no frequency_response service')
+            request = request_message(['amplitude_z_m'], {'method': 'fem_sag',
+                                                          'elements_per_cable': 64,
+                                                          'n_points': frf_call_points})
+            answered = threading.Event()
+            call = {}
+
+            def call_service():
+                call['start'] = time.perf_counter()
+                future = client.call_async(request)
+                future.add_done_callback(lambda _: answered.set())
+                answered.wait(600.0)
+                call['end'] = time.perf_counter()
+
+            caller = threading.Thread(target=call_service, daemon=True)
+            sent, period, dt = {}, 1 / 200, 1e-3
+            start = time.perf_counter()
+            k = 0
+            while not answered.is_set() and time.perf_counter() - start < 600.0:
+                if k == 200:            # 1 s of wrenches before the call
+                    caller.start()
+                while time.perf_counter() < start + k * period:
+                    time.sleep(0.0002)
+                stamp = s_to_stamp(t_start + k * dt)
+                sent[stamp_to_ns(stamp)] = time.perf_counter()
+                pub.publish(wrench_message([0.0, 0.0, 100.0], frame_id=frame, stamp=stamp))
+                k += 1
+            caller.join(5.0)
+            with cond:
+                cond.wait_for(lambda: all(key in received for key in sent), 5.0)
+            inside = [key for key, t in sent.items() if call['start'] <= t <= call['end']]
+            before = [key for key, t in sent.items() if t < call['start']]
+            arrivals = sorted(received[key] for key in sent if key in received)
+            out = {'points': frf_call_points, 'call_s': call['end'] - call['start'],
+                   'sent_during_call': len(inside),
+                   'lost_during_call': sum(key not in received for key in inside),
+                   'lost': sum(key not in received for key in sent),
+                   'before': _percentiles([received[key] - sent[key] for key in before
+                                           if key in received]),
+                   'during': _percentiles([received[key] - sent[key] for key in inside
+                                           if key in received] or [np.nan]),
+                   'longest_gap_ms': float(np.diff(arrivals).max() * 1e3)}
+            out['p50_during_over_before'] = out['during']['p50_ms'] / out['before']['p50_ms']
+            return out
+
+        result = {}
+        try:
+            # the reference: a trivial rclpy echo node (wrench in, Vector3Stamped out)
+            echo = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node',
+                                     'echo'], env=env, stdout=log, stderr=subprocess.STDOUT,
+                                    start_new_session=True)
+            try:
+                with cond:
+                    if not cond.wait_for(lambda: pub.get_subscription_count() > 0, 30.0):
+                        raise RuntimeError('the echo node did not come up')
+                result['echo_latency'] = latency(t0)
+            finally:
+                stop_process(echo)
+            proc = start_node(config, env, stdout=log, stderr=subprocess.STDOUT)
+            with cond:
+                if not cond.wait_for(lambda: pub.get_subscription_count() > 0 and statuses, 30.0):
+                    raise RuntimeError('dynamics_node did not come up')
+            result['latency'] = latency(t0 + 2 * latency_s)
+            result['latency_over_echo'] = {
+                key: result['latency'][key] / max(result['echo_latency'][key], 1e-9)
+                for key in ('p50_ms', 'p99_ms')}
+            result['during_frf_call'] = during_call(t0 + 4 * latency_s)
             values = wrench_status(len(statuses))
             result['node_compute'] = {'p50_ms': float(values['compute_ms_p50']),
                                       'p99_ms': float(values['compute_ms_p99']),
@@ -231,7 +308,7 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
                                       'publish_p99_ms': float(values['publish_ms_p99'])}
             # sustained rate: floods from a child process
             floods = []
-            t_next = t0 + latency_s + 5.0          # > 1 s gap: each flood starts at rest
+            t_next = max(received) * 1e-9 + 5.0    # > 1 s gap: each flood starts at rest
             for rate in rates:
                 before = int(wrench_status(len(statuses))['accepted'])
                 with cond:
@@ -265,12 +342,14 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
             executor_.shutdown()
             node.destroy_node()
             rclpy.try_shutdown()
-            result['node_exit'] = stop_process(proc)
+            if proc is not None:
+                result['node_exit'] = stop_process(proc)
             log.close()
             reservation.release()
         return result
     finally:
-        stop_process(proc)          # at once where the block above stopped it
+        if proc is not None:
+            stop_process(proc)      # at once where the block above stopped it
         log.close()
         reservation.release()
 
@@ -351,8 +430,159 @@ def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world
             'last_stamp_s': start_s + (sent - 1) * period}
 
 
+def controller(config, wrench_hz: float, pose_hz: float, duration_s: float,
+               subscribers: int = 1, start_s: float = 2000.0) -> dict:
+    """A controller's traffic: WrenchStamped at ``wrench_hz`` and PoseStamped at ``pose_hz``
+    moving along a 5 cm circle (each pose a rebuild), both best effort, stamps 1/rate apart
+    from ``start_s``, for ``duration_s``; starts once both topics have ``subscribers``
+    subscriptions (the node and a recorder). Returns the counts sent."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
+    from rclpy.node import Node
+    from rclpy.qos import qos_profile_sensor_data
+
+    from cdpr_dynamics.live import rotated_quaternion
+    from msg_adapters.pose import pose_message
+    from msg_adapters.validation import s_to_stamp
+    from msg_adapters.wrench import wrench_message
+
+    settings = load_settings(config)
+    frame = settings.robot.frame_id
+    quaternion = rotated_quaternion(settings.initial_rotation, np.zeros(3))
+    rclpy.init()
+    node = Node('cdpr_controller')
+    wrench_pub = node.create_publisher(WrenchStamped, 'wrench', qos_profile_sensor_data)
+    pose_pub = node.create_publisher(PoseStamped, 'pose', qos_profile_sensor_data)
+    deadline = time.monotonic() + 30.0
+    while (min(wrench_pub.get_subscription_count(), pose_pub.get_subscription_count())
+           < subscribers and time.monotonic() < deadline):
+        rclpy.spin_once(node, timeout_sec=0.05)
+    if min(wrench_pub.get_subscription_count(), pose_pub.get_subscription_count()) < subscribers:
+        raise SystemExit(f'controller: fewer than {subscribers} subscribers on wrench and pose '
+                         'after 30 s')
+    msg = wrench_message([0.0, 0.0, 0.0], frame_id=frame)
+    total = int(round(wrench_hz * duration_s))
+    per_pose = max(1, int(round(wrench_hz / pose_hz)))
+    sent = {'wrench': 0, 'pose': 0}
+    start = time.perf_counter()
+    k = 0
+    while k < total:
+        due = min(total, int((time.perf_counter() - start) * wrench_hz) + 1)
+        while k < due:
+            t = start_s + k / wrench_hz
+            if k % per_pose == 0:
+                position = _circle(settings, sent['pose'], 100)
+                pose_pub.publish(pose_message(position, quaternion, frame, s_to_stamp(t)))
+                sent['pose'] += 1
+            msg.header.stamp = s_to_stamp(t)
+            msg.wrench.force.z = 1000.0 * np.sin(2 * np.pi * 5.0 * (t - start_s))
+            wrench_pub.publish(msg)
+            sent['wrench'] += 1
+            k += 1
+        time.sleep(min(1.0 / wrench_hz, 0.0005))
+    elapsed = time.perf_counter() - start
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return {**sent, 'duration_s': elapsed, 'wrench_hz': sent['wrench'] / elapsed,
+            'last_stamp_s': start_s + (total - 1) / wrench_hz}
+
+
+def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
+                    duration_s: float = 10.0, method: str | None = None) -> dict:
+    """A controller's rates with ``cdpr_record`` beside the node (all child processes, one ROS
+    domain): per topic the messages published, recorded, and predicted by the node (its
+    /diagnostics counts, read from the recording)."""
+    from cdpr_dynamics.node_process import start_node, stop_process
+    from cdpr_dynamics.recording.reader import read_messages, recording_info
+    from msg_adapters.diagnostics import read_statuses
+
+    reservation, env = _ros_session('controller')
+    folder = Path(env['ROS_LOG_DIR'])
+    path = folder / 'controller.mcap'
+    parameters = {'model.method': method} if method else None
+    node = start_node(config, env, parameters, stdout=subprocess.DEVNULL,
+                      stderr=subprocess.DEVNULL)
+    recorder = None
+    try:
+        recorder = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.record',
+                                     '--output', str(path)], env=env, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True)
+        out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node',
+                              'controller', '--config', str(config), '--wrench-hz',
+                              str(wrench_hz), '--pose-hz', str(pose_hz), '--duration',
+                              str(duration_s), '--subscribers', '2'], env=env,
+                             capture_output=True, text=True, timeout=duration_s + 90)
+        if out.returncode != 0:
+            raise RuntimeError((out.stderr or out.stdout).strip().splitlines()[-1])
+        sent = json.loads(out.stdout.strip().splitlines()[-1])
+        time.sleep(1.5)       # two diagnostics periods: the node's final counts are recorded
+    finally:
+        if recorder is not None:
+            stop_process(recorder)
+        stop_process(node)
+        reservation.release()
+    info = recording_info(path)
+    recorded = {name.lstrip('/'): t.message_count for name, t in info.topics.items()}
+    last = {}
+    for record in read_messages(path, ['/diagnostics']):
+        for name, status in read_statuses(record.message).items():
+            last[name.split(': ', 1)[-1]] = status['values']
+    wrench_in, pose_in = last.get('wrench input', {}), last.get('pose input', {})
+    model = last.get('model', {})
+    result = {'wrench_hz': wrench_hz, 'pose_hz': pose_hz, 'duration_s': duration_s,
+              'published': {'wrench': sent['wrench'], 'pose': sent['pose']},
+              'recorded': recorded,
+              'predicted': int(wrench_in.get('accepted', 0)),
+              'poses_accepted': int(pose_in.get('accepted', 0)),
+              'rebuilds': int(model.get('rebuilds', 0)),
+              'update_ms_p50': float(model.get('update_ms_p50', 'nan')),
+              'update_ms_p99': float(model.get('update_ms_p99', 'nan')),
+              'method': model.get('method', ''),
+              'pose_rejected': int(pose_in.get('rejected', 0)),
+              'wrench_rejected': int(wrench_in.get('rejected', 0)),
+              'last_rejection': {'pose': pose_in.get('last_rejection', ''),
+                                 'wrench': wrench_in.get('last_rejection', '')}}
+    result['predicted_fraction'] = result['predicted'] / max(1, sent['wrench'])
+    result['recorded_fraction'] = {
+        'wrench': recorded.get('wrench', 0) / max(1, sent['wrench']),
+        'pose': recorded.get('pose', 0) / max(1, sent['pose']),
+        'predicted_displacement': (recorded.get('predicted_displacement', 0)
+                                   / max(1, result['predicted']))}
+    return result
+
+
+def echo() -> None:
+    """The reference of the latency: a trivial rclpy node that answers each ``wrench`` with
+    a ``predicted_displacement`` of the same stamp (sensor-data QoS in, depth 10 out), spun
+    by rclpy's SingleThreadedExecutor; until SIGINT."""
+    import rclpy
+    from geometry_msgs.msg import Vector3Stamped, WrenchStamped
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.node import Node
+    from rclpy.qos import qos_profile_sensor_data
+
+    rclpy.init()
+    node = Node('cdpr_echo')
+    pub = node.create_publisher(Vector3Stamped, 'predicted_displacement', 10)
+    out = Vector3Stamped()
+
+    def on_wrench(msg):
+        out.header = msg.header
+        pub.publish(out)
+
+    node.create_subscription(WrenchStamped, 'wrench', on_wrench, qos_profile_sensor_data)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
 def main(argv=None) -> int:
-    """``flood``: the wrench publisher of the benchmark and of the flood test."""
+    """``flood``: the wrench publisher of the benchmark and of the flood test; ``controller``:
+    a controller's wrenches and moving poses (:func:`controller`)."""
     parser = argparse.ArgumentParser(description='publish wrenches at a rate (tests, cdpr_bench)')
     sub = parser.add_subparsers(dest='command', required=True)
     fl = sub.add_parser('flood', help='publish wrenches at a rate (for tests and benchmarks)')
@@ -360,7 +590,21 @@ def main(argv=None) -> int:
     fl.add_argument('--duration', type=float, default=10.0)
     fl.add_argument('--start-s', type=float, default=1000.0)
     fl.add_argument('--frame', default='world')
+    co = sub.add_parser('controller', help='publish wrenches and moving poses at rates')
+    co.add_argument('--config', required=True)
+    co.add_argument('--wrench-hz', type=float, default=1000.0)
+    co.add_argument('--pose-hz', type=float, default=50.0)
+    co.add_argument('--duration', type=float, default=10.0)
+    co.add_argument('--subscribers', type=int, default=1)
+    sub.add_parser('echo', help='answer each wrench with a prediction of the same stamp')
     args = parser.parse_args(argv)
+    if args.command == 'echo':
+        echo()
+        return 0
+    if args.command == 'controller':
+        print(json.dumps(controller(args.config, args.wrench_hz, args.pose_hz, args.duration,
+                                    args.subscribers)))
+        return 0
     print(json.dumps(flood(args.rate, args.duration, args.start_s, args.frame)))
     return 0
 

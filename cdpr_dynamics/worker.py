@@ -1,0 +1,174 @@
+"""A worker process for the node's slow analyses, so they never hold the executor that
+serves pose and wrench (no rclpy: the child never joins the ROS graph).
+
+The live node answers ``frequency_response`` calls and refreshes its classified modes after
+rebuilds; either can take from milliseconds (fem 16) to seconds (a 20000-point fem_sag 64
+sweep). A thread would hold the GIL for most of that time (the analyses are partly Python), so
+they run in one child process (``spawn``: nothing of the parent's DDS threads is inherited),
+started with the worker (in the background) and kept. Jobs are pickled plain data
+(:class:`Settings`, :class:`Equilibrium`, the model's method and size), run one at a time in
+submission order, and their results come back as :class:`concurrent.futures.Future` s
+resolved by a pump thread of the parent (which blocks in ``recv`` and so holds no GIL while
+the child works).
+
+A child that dies (killed, out of memory) fails the jobs it had with :class:`WorkerError` and
+is started again for the next one. The child ignores SIGINT (a terminal's Ctrl-C goes to the
+whole process group: the parent decides) and ends with its parent (PR_SET_PDEATHSIG on Linux,
+else at the end of its pipe).
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import ctypes
+import multiprocessing
+import queue
+import signal
+import threading
+
+JOIN_S = 0.5        # how long :meth:`Worker.close` waits for the child before killing it
+
+
+class WorkerError(RuntimeError):
+    """The worker process ended before it answered."""
+
+
+def frf_job(settings, eq, method: str, elements: int):
+    """(arrays, error) of a frequency_response call: :func:`analysis.frf_arrays` of ``method``
+    with ``elements`` per cable at the state ``eq``; error '' or the reason (one line)."""
+    from cdpr_dynamics.analysis import AnalysisError, build_system, frf_arrays
+    system = build_system(settings, eq, method, elements)
+    if not system.assembly.valid:
+        raise AnalysisError(f'method {system.assembly.method} is not valid for this state: '
+                            + '; '.join(system.assembly.warnings))
+    return frf_arrays(settings, system)
+
+
+def modes_job(settings, eq, method: str, elements: int, max_steps: int) -> dict:
+    """What the node reports of its model's modes: every natural frequency up to
+    ``frf.f_max_hz`` (at least 12), the platform ones, and the time-step warnings."""
+    from cdpr_dynamics.analysis import build_system, system_modes
+    from cdpr_dynamics.dynamics import natural_frequencies
+    from cdpr_dynamics.live import time_step_warnings
+    import numpy as np
+    system = build_system(settings, eq, method, elements)
+    found = system_modes(settings, system)
+    freqs = natural_frequencies(system, 12) if found is None else found.frequency_hz
+    positive = np.asarray(freqs)[np.asarray(freqs) > 0]
+    lowest = float(positive[0]) if positive.size else float('nan')
+    return {'frequency_hz': np.asarray(freqs),
+            'platform_hz': np.zeros(0) if found is None else found.platform_hz,
+            'step_warnings': time_step_warnings(settings, system, lowest, max_steps)}
+
+
+JOBS = {'frf': frf_job, 'modes': modes_job}
+
+
+def _die_with_parent() -> None:
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):      # not Linux: the closed pipe ends the loop instead
+        pass
+
+
+def _serve(conn) -> None:
+    """The child's loop: (name, args) in, (True, result) or (False, message) out."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent()
+    from msg_adapters.inputs import NUMERIC_ERRORS, first_line
+    while True:
+        try:
+            name, args = conn.recv()
+        except (EOFError, OSError, KeyboardInterrupt):
+            return
+        try:
+            reply = (True, JOBS[name](*args))
+        except NUMERIC_ERRORS as exc:
+            reply = (False, first_line(exc))
+        except Exception as exc:  # noqa: BLE001 - any failure is the job's answer, not the end
+            reply = (False, f'{type(exc).__name__}: {first_line(exc)}')
+        try:
+            conn.send(reply)
+        except (OSError, ValueError):
+            return
+
+
+class Worker:
+    """One child process serving :data:`JOBS` in order (see the module docstring)."""
+
+    def __init__(self):
+        self._context = multiprocessing.get_context('spawn')
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._process = None
+        self._conn = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._pump, name='cdpr_worker', daemon=True)
+        self._thread.start()
+
+    def submit(self, name: str, *args) -> concurrent.futures.Future:
+        """Queue job ``name`` (a key of :data:`JOBS`) with ``args``; its future resolves to
+        the job's result, or raises :class:`JobFailed` (the job's one-line reason) or
+        :class:`WorkerError`."""
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        if self._closed:
+            future.set_exception(WorkerError('the worker is closed'))
+        else:
+            self._jobs.put((future, name, args))
+        return future
+
+    def close(self) -> None:
+        """Stop the child (at once: a running job is abandoned) and the pump thread."""
+        self._closed = True
+        self._jobs.put(None)
+        process = self._process
+        if process is not None and process.is_alive():
+            process.terminate()
+            process.join(JOIN_S)
+            if process.is_alive():
+                process.kill()
+        self._thread.join(JOIN_S)
+
+    def _start(self) -> None:
+        parent, child = self._context.Pipe()
+        self._process = self._context.Process(target=_serve, args=(child,),
+                                              name='cdpr_dynamics_worker', daemon=True)
+        self._process.start()
+        child.close()
+        self._conn = parent
+
+    def _pump(self) -> None:
+        try:      # at once, so the first job does not wait for Python to start and import
+            self._start()
+        except Exception:  # noqa: BLE001 - tried again (and reported) with the first job
+            self._process = None
+        while True:
+            job = self._jobs.get()
+            if job is None or self._closed:
+                if job is not None:
+                    job[0].set_exception(WorkerError('the worker is closed'))
+                return
+            future, name, args = job
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                if self._process is None or not self._process.is_alive():
+                    self._start()
+                self._conn.send((name, args))
+                ok, value = self._conn.recv()
+            except (EOFError, OSError) as exc:
+                code = None if self._process is None else self._process.exitcode
+                self._process = None
+                future.set_exception(WorkerError(
+                    'the analysis process ended before it answered'
+                    + (f' (exit code {code})' if code is not None else f' ({exc})')))
+                continue
+            except Exception as exc:  # noqa: BLE001 - e.g. arguments that do not pickle
+                future.set_exception(WorkerError(f'{type(exc).__name__}: {exc}'))
+                continue
+            if ok:
+                future.set_result(value)
+            else:
+                future.set_exception(JobFailed(value))
+
+
+class JobFailed(RuntimeError):
+    """A job raised in the worker; the message is its one-line reason."""
