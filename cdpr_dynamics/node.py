@@ -88,6 +88,8 @@ LOG_PERIOD_S = 1.0
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
 STOP_DEADLINE_S = 0.8     # after SIGINT/SIGTERM the process ends within this, cleanly or not
+SWITCH_INTERVAL_S = 0.0005   # the GIL changes hands at least this often (Python's default,
+#                              5 ms, would let the services thread hold a wrench that long)
 MODES_PERIOD_S = 0.5      # modes refreshed after rebuilds at most this often (a moving pose
 #                           rebuilds at 50 Hz and more; its modes change slowly)
 
@@ -308,7 +310,9 @@ class DynamicsNode(Node):
         self._diag_last = -np.inf
         self._diag_timer = self.create_timer(CHANGE_PERIOD_S, self.on_diagnostics_timer)
         self._publish_tensions(self.get_clock().now().to_msg())
-        self._publish_markers()
+        self._publish_markers(self.predictor.prediction().displacement_m
+                              * self._flat['node.marker_scale'], self.predictor.settings,
+                              self.predictor.eq)
         update = self.predictor.last_update
         logger.info(f'{update.method} model, {update.dofs} DOFs at '
                     f'{np.round(self.predictor.position_m, 4).tolist()} m in '
@@ -525,15 +529,13 @@ class DynamicsNode(Node):
         self.tensions_pub.publish(tensions_message(eq.geometry.length_m, eq.tensions.tension_n,
                                                    stamp, self.frame_id))
 
-    def _publish_markers(self, rebuilt: bool = True) -> None:
-        """``cdpr_markers`` of the current equilibrium (rebuilt) or only its arrow moved to
-        the predicted displacement of the centroid times ``node.marker_scale``."""
-        arrow = self.predictor.prediction().displacement_m * self._flat['node.marker_scale']
+    def _publish_markers(self, arrow, settings, eq, rebuilt: bool = True) -> None:
+        """``cdpr_markers`` of the equilibrium ``eq`` (rebuilt) or only its arrow moved to
+        ``arrow``, the predicted displacement of the centroid times ``node.marker_scale``."""
         self._markers_arrow = arrow
         stamp = self.get_clock().now().to_msg()
         if rebuilt or self._markers is None:
-            self._markers = equilibrium_markers(self.predictor.settings, self.predictor.eq,
-                                                arrow, 1.0, stamp)
+            self._markers = equilibrium_markers(settings, eq, arrow, 1.0, stamp)
         else:
             update_arrow(self._markers, arrow, 1.0, stamp)
         self.markers_pub.publish(self._markers)
@@ -601,7 +603,6 @@ class DynamicsNode(Node):
 
     # ------------------------------------------------------------------------- service
 
-    @_locked
     def on_frequency_response(self, request, response):
         """FRF at the current pose and tensions; overrides for this call; reasons as STRING.
 
@@ -611,6 +612,15 @@ class DynamicsNode(Node):
         worker is done (:meth:`_answer_ready`). Answers leave in request order: a call that
         could be answered at once waits behind the calls before it."""
         call = _PendingCall(parse_request(request.names), response, time.perf_counter())
+        with self._lock:
+            answer_now = self._take_call(call)
+        if answer_now:
+            return self._answer(call)     # outside the lock: a large reply takes milliseconds
+        return call       # its header arrives in _send_frf_response; answered in order
+
+    def _take_call(self, call) -> bool:
+        """Look the call up in the cache or give it to the worker; True where it can be
+        answered at once (nothing waits before it and its result is known)."""
         self._frf['calls'] += 1
         parsed = call.parsed
         error = parsed.error or self._frf_limits(parsed)  # refused before any work
@@ -633,9 +643,9 @@ class DynamicsNode(Node):
         else:
             call.result = (None, error)
         if call.result is not None and not self._frf_pending:
-            return self._answer(call)
+            return True
         self._frf_pending.append(call)
-        return call       # its header arrives in _send_frf_response; answered in order
+        return False
 
     def _submit_frf(self, overrides: dict, key):
         """Queue the FRF of this call at the current state on the worker (a future)."""
@@ -669,18 +679,22 @@ class DynamicsNode(Node):
             return
         type(self.frf_service).send_response(self.frf_service, response, header)
 
-    @_locked
     def _answer_ready(self) -> None:
         """Send the waiting answers whose results are in, oldest first (request order), and
-        take the worker's modes if they are in."""
-        self._take_modes()
-        while self._frf_pending:
-            call = self._frf_pending[0]
-            if call.header is None or (call.result is None and not call.future.done()):
-                return
-            self._frf_pending.popleft()
-            if call.result is None:
-                call.result = self._frf_result(call)
+        take the worker's modes if they are in; the replies are packed and sent outside the
+        lock (a 20000-point reply takes milliseconds)."""
+        ready = []
+        with self._lock:
+            self._take_modes()
+            while self._frf_pending:
+                call = self._frf_pending[0]
+                if call.header is None or (call.result is None and not call.future.done()):
+                    break
+                self._frf_pending.popleft()
+                if call.result is None:
+                    call.result = self._frf_result(call)
+                ready.append(call)
+        for call in ready:
             message = self._answer(call)
             try:
                 type(self.frf_service).send_response(self.frf_service, message, call.header)
@@ -703,6 +717,9 @@ class DynamicsNode(Node):
             while len(self._frf_cache) > self._flat['node.frf_cache_size']:
                 self._frf_cache.popitem(last=False)
         if arrays is not None and not call.parsed.overrides and call.key[0] == self.revision:
+            platform = arrays.get('platform_natural_frequencies_hz')
+            if not isinstance(platform, str) and platform is not None:
+                self._platform_hz = np.asarray(platform)
             self._set_modal(arrays['natural_frequencies_hz'])
         return arrays, error
 
@@ -737,24 +754,34 @@ class DynamicsNode(Node):
 
     # --------------------------------------------------------------------- diagnostics
 
-    @_locked
     def on_diagnostics_timer(self) -> None:
         """Markers (rebuilt ones at most every tick, CHANGE_PERIOD_S: building them costs
-        milliseconds, poses come at 50 Hz and more) and diagnostics when something changed."""
-        arrow = self.predictor.prediction().displacement_m * self._flat['node.marker_scale']
-        if self._markers_stale:
+        milliseconds, poses come at 50 Hz and more) and diagnostics when something changed.
+        The state is read under the lock; the messages are built and published outside it,
+        so the pose and wrench thread waits for neither."""
+        with self._lock:
+            arrow = self.predictor.prediction().displacement_m * self._flat['node.marker_scale']
+            rebuilt = self._markers_stale or self._markers is None
+            markers_due = rebuilt or not np.array_equal(arrow, self._markers_arrow)
             self._markers_stale = False
-            self._publish_markers()
-        elif not np.array_equal(arrow, self._markers_arrow):   # the arrow: every tick at most
-            self._publish_markers(rebuilt=False)
-        now = time.monotonic()
-        if self._diag_dirty or now - self._diag_last >= self._flat['node.diagnostics_period_s']:
-            self._diag_dirty = False
-            self._diag_last = now
-            self.diagnostics_pub.publish(self.diagnostics())
+            state = (self.predictor.settings, self.predictor.eq)
+            now = time.monotonic()
+            statuses = None
+            if (self._diag_dirty
+                    or now - self._diag_last >= self._flat['node.diagnostics_period_s']):
+                self._diag_dirty = False
+                self._diag_last = now
+                statuses = self._statuses()
+        if markers_due:
+            self._publish_markers(arrow, *state, rebuilt=rebuilt)
+        if statuses is not None:
+            self.diagnostics_pub.publish(diag.diagnostics_message(
+                [diag.status_message(*status) for status in statuses],
+                self.get_clock().now().to_msg()))
 
-    def diagnostics(self) -> DiagnosticArray:
-        """The node's DiagnosticArray: model, pose input, wrench input, frequency_response."""
+    def _statuses(self) -> list[tuple]:
+        """The diagnostics statuses (name, level, message, values, hardware id): model, pose
+        input, wrench input, frequency_response."""
         hw = self.get_fully_qualified_name()
         name = self.get_name()
         if self._modal_stale and time.monotonic() - self._modes_asked >= MODES_PERIOD_S:
@@ -764,14 +791,14 @@ class DynamicsNode(Node):
                                      ('wrench input', self.wrench_health, self._wrench_stats())):
             level, reason = health.report()
             message = reason or f'{health.accepted} accepted'
-            statuses.append(diag.status_message(f'{name}: {title}', level, message,
-                                                {**health.values(), **extra}, hw))
+            statuses.append((f'{name}: {title}', level, message, {**health.values(), **extra},
+                             hw))
         frf_level = diag.WARN if self._frf['last_error'] else diag.OK
-        statuses.append(diag.status_message(
-            f'{name}: frequency_response', frf_level,
-            self._frf['last_error'] or f'{self._frf["calls"]} calls', dict(self._frf), hw))
+        statuses.append((f'{name}: frequency_response', frf_level,
+                         self._frf['last_error'] or f'{self._frf["calls"]} calls',
+                         dict(self._frf), hw))
         self._frf['last_error'] = ''
-        return diag.diagnostics_message(statuses, self.get_clock().now().to_msg())
+        return statuses
 
     def _model_status(self, name: str, hw: str):
         p = self.predictor
@@ -802,7 +829,7 @@ class DynamicsNode(Node):
         level = diag.WARN if warnings else diag.OK
         message = (f'{update.method}, {update.dofs} DOFs' + (f': {warnings[0]}' if warnings
                                                              else ''))
-        return diag.status_message(f'{name}: model', level, message, values, hw)
+        return f'{name}: model', level, message, values, hw
 
     def _wrench_stats(self) -> dict:
         values = {}
@@ -966,6 +993,7 @@ def main(args=None):
     stopper = Stopper()
     node = None
     status = 0
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     services = SingleThreadedExecutor()
     failed: list[BaseException] = []
     thread = None
