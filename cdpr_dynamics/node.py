@@ -88,6 +88,8 @@ LOG_PERIOD_S = 1.0
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
 STOP_DEADLINE_S = 0.8     # after SIGINT/SIGTERM the process ends within this, cleanly or not
+OUTPUT_DEPTH = 1000      # predictions kept for a reliable subscriber that lags: 1 s at 1 kHz
+#                          (a depth of 10 drops what a subscriber busy for 10 ms has not taken)
 SWITCH_INTERVAL_S = 0.0005   # the GIL changes hands at least this often (Python's default,
 #                              5 ms, would let the services thread hold a wrench that long)
 MODES_PERIOD_S = 0.5      # modes refreshed after rebuilds at most this often (a moving pose
@@ -276,8 +278,8 @@ class DynamicsNode(Node):
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.displacement_pub = self.io.create_publisher(Vector3Stamped,
-                                                         'predicted_displacement', 10)
-        self.pose_pub = self.io.create_publisher(PoseStamped, 'predicted_pose', 10)
+                                                         'predicted_displacement', OUTPUT_DEPTH)
+        self.pose_pub = self.io.create_publisher(PoseStamped, 'predicted_pose', OUTPUT_DEPTH)
         # one message per output topic, filled per wrench (publish serialises it at once)
         self._displacement_msg = displacement_message(np.zeros(3), self.frame_id, s_to_stamp(0.0))
         self._pose_msg = pose_message(np.zeros(3), (0.0, 0.0, 0.0, 1.0), self.frame_id)

@@ -487,6 +487,30 @@ def controller(config, wrench_hz: float, pose_hz: float, duration_s: float,
             'last_stamp_s': start_s + (total - 1) / wrench_hz}
 
 
+def _wait_for_quiet_counts(path: Path, after_ns: int, timeout_s: float) -> bool:
+    """Until the recording being written at ``path`` holds two node diagnostics logged after
+    ``after_ns`` with the same wrench count (the node has taken its queue), or the time is
+    up; read as far as its whole chunks go (a chunk is closed at least every second)."""
+    from cdpr_dynamics.recording.reader import read_messages
+    from msg_adapters.diagnostics import read_statuses
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        counts = []
+        try:
+            for record in read_messages(path, ['/diagnostics'], allow_incomplete=True):
+                if record.log_time_ns > after_ns:
+                    status = read_statuses(record.message).get('cdpr_dynamics: wrench input')
+                    if status is not None:
+                        counts.append(status['values'].get('accepted'))
+        except Exception:  # noqa: BLE001 - the file is being written: read again
+            counts = []
+        if len(counts) >= 2 and counts[-1] == counts[-2]:
+            return True
+        time.sleep(0.2)       # the polling period of the file, not a synchronisation
+    return False
+
+
 def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
                     duration_s: float = 10.0, method: str | None = None) -> dict:
     """A controller's rates with ``cdpr_record`` beside the node (all child processes, one ROS
@@ -515,7 +539,7 @@ def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
         if out.returncode != 0:
             raise RuntimeError((out.stderr or out.stdout).strip().splitlines()[-1])
         sent = json.loads(out.stdout.strip().splitlines()[-1])
-        time.sleep(1.5)       # two diagnostics periods: the node's final counts are recorded
+        _wait_for_quiet_counts(path, time.time_ns(), 30.0)
     finally:
         if recorder is not None:
             stop_process(recorder)

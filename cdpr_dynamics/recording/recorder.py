@@ -46,6 +46,12 @@ class _Topic:
         self.warned = False
 
 
+#: Depth of each subscription: 1 s of a 1 kHz topic, so a recorder that falls behind for a
+#: moment (a chunk written, a busy machine) loses nothing (at 100, 98.9-99.7 % were kept of
+#: 1-5 kHz wrench floods beside a busy node).
+QOS_DEPTH = 1000
+
+
 class Recorder:
     """Records topics of a running node's graph to one MCAP file.
 
@@ -65,7 +71,8 @@ class Recorder:
     def __init__(self, node, path, topics, *, force: bool = False,
                  chunk_size: int = DEFAULT_CHUNK_SIZE,
                  chunk_interval_s: float = DEFAULT_CHUNK_INTERVAL_S,
-                 compression: str = 'none', qos_depth: int = 100, log_failure: bool = True):
+                 compression: str = 'none', qos_depth: int = QOS_DEPTH,
+                 log_failure: bool = True):
         from rclpy.clock import Clock, ClockType
 
         self._node = node
