@@ -12,7 +12,7 @@ import numpy as np
 from cdpr_dynamics import models
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.dynamics import (Damping, DynamicsError, PlatformSystem, configured_damping,
-                                    frequency_response, natural_frequencies, platform_system)
+                                    frequency_response, platform_system)
 from cdpr_dynamics.feasibility import cable_crossing
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.models.catenary import (end_position, paper_misclosure, sag_parameter,
@@ -51,8 +51,9 @@ def structure_rank(structure_matrix: np.ndarray) -> tuple[int, float, np.ndarray
 def _check_design(settings: Settings, geo: Geometry) -> None:
     """Refuse a structure matrix of rank below the platform DOFs, and crossing cables."""
     ndof = settings.robot.platform_dofs
-    rank, _, direction = structure_rank(geo.structure_matrix)
-    if rank < ndof:
+    sing = np.linalg.svd(geo.structure_matrix, compute_uv=False)     # the vectors only when
+    if np.sum(sing > RANK_TOLERANCE * sing[0]) < ndof:                # the rank is short
+        rank, _, direction = structure_rank(geo.structure_matrix)
         axis = WRENCH_AXES[int(np.argmax(np.abs(direction)))]
         raise AnalysisError(f'the structure matrix has rank {rank} < {ndof} platform DOFs: no '
                             f'cable tensions produce a wrench along '
@@ -237,7 +238,6 @@ FRF_ARRAYS = ('frequency_hz', 'amplitude_x_m', 'amplitude_y_m', 'amplitude_z_m',
               'phase_y_rad', 'phase_z_rad', 'log10_amplitude_z',
               'natural_frequencies_hz') + ROTATION_ARRAYS + MODE_ARRAYS
 POINT_MASS_ROTATION = 'a point-mass platform has no rotation DOFs'
-DSM_MODES = 'dsm modes (Wittrick-Williams) are not classified: use fem or fem_sag'
 
 
 def point_map(rotation: np.ndarray, point_m, platform_dofs: int) -> np.ndarray:
@@ -287,26 +287,26 @@ def frf_response(settings: Settings, system: PlatformSystem, damping=None):
     return response, point
 
 
-def system_modes(settings: Settings, system: PlatformSystem):
+def system_modes(settings: Settings, system: PlatformSystem, shapes: bool = False):
     """Classified modes (:func:`cdpr_dynamics.modes.modes`) up to ``frf.f_max_hz``, at least
-    the 12 lowest; None for ``dsm`` (no finite matrices)."""
+    the 12 lowest, by Wittrick-Williams counting (every model, ``dsm`` included); ``shapes``:
+    with the mode shapes of every DOF (dense or Lanczos path; not for ``dsm``)."""
     from cdpr_dynamics.modes import modes
-    if system.assembly.blocks is None:
-        return None
-    return modes(system, settings.f_max_hz)
+    return modes(system, settings.f_max_hz, shapes=shapes)
 
 
-def frf_arrays(settings: Settings, system: PlatformSystem) -> dict:
+def frf_arrays(settings: Settings, system: PlatformSystem, found=None) -> dict:
     """The FRF arrays of the service contract (SPEC section 5) for the settings' sweep.
 
     Amplitudes and phases are those of ``frf.point_m`` (u + theta x R b); rotations (6-DOF
     platforms) of the platform; a name whose array cannot exist maps to its reason (str).
+    ``found``: the system's modes (:func:`system_modes`) where the caller has them.
     """
     response, point = frf_response(settings, system)
     amplitude, phase = np.abs(point), np.angle(point)
     with np.errstate(divide='ignore'):
         log_z = np.log10(amplitude[:, 2])
-    found = system_modes(settings, system)
+    found = system_modes(settings, system) if found is None else found
     arrays = {
         'frequency_hz': response.frequency_hz,
         'amplitude_x_m': amplitude[:, 0], 'amplitude_y_m': amplitude[:, 1],
@@ -314,13 +314,9 @@ def frf_arrays(settings: Settings, system: PlatformSystem) -> dict:
         'phase_x_rad': phase[:, 0], 'phase_y_rad': phase[:, 1], 'phase_z_rad': phase[:, 2],
         'log10_amplitude_z': log_z,
     }
-    if found is None:
-        arrays['natural_frequencies_hz'] = natural_frequencies(system, 12)
-        arrays.update(dict.fromkeys(MODE_ARRAYS, DSM_MODES))
-    else:
-        arrays['natural_frequencies_hz'] = found.frequency_hz
-        arrays['platform_natural_frequencies_hz'] = found.platform_hz
-        arrays['mode_platform_fraction'] = found.platform_fraction
+    arrays['natural_frequencies_hz'] = found.frequency_hz
+    arrays['platform_natural_frequencies_hz'] = found.platform_hz
+    arrays['mode_platform_fraction'] = found.platform_fraction
     for axis, name in enumerate(ROTATION_ARRAYS):
         arrays[name] = (np.abs(response.response[:, 3 + axis]) if system.platform_dofs == 6
                         else POINT_MASS_ROTATION)

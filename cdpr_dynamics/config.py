@@ -124,10 +124,10 @@ NODE_PARAMETERS: tuple[Param, ...] = (
           'normalised)', 0.0, 0.5),
     Param('node.diagnostics_period_s', 1.0, 'period of /diagnostics when nothing changes (s); '
           'changes are published within 0.1 s', 0.1, 60.0),
-    Param('node.wrench_queue_depth', 50, 'depth of the best-effort wrench subscription: how '
+    Param('node.wrench_queue_depth', 200, 'depth of the best-effort wrench subscription: how '
           'many wrenches wait while the node is busy before the oldest are dropped', 1, 10000),
     Param('node.frf_max_points', 20000, 'largest n_points a frequency_response call may ask '
-          'for (one call blocks the node for its duration)', 1, 1000000),
+          'for (the worker process computes it: a large one takes seconds)', 1, 1000000),
     Param('node.frf_cache_size', 8, 'frequency responses kept per state (0: no cache)',
           0, 1000),
     Param('node.service_introspection', 'contents', 'service events on '

@@ -1,4 +1,4 @@
-"""Platform dynamics: assembly, frequency response (Eq. 38), modes, damping (Eq. 41), Newmark.
+"""Platform dynamics: assembly, frequency response (Eq. 38), damping (Eq. 41), Newmark.
 
 DOFs are ordered platform first (3 translations, then 3 small rotations for a rigid platform),
 then every cable's interior nodes. A cable end moves with its attachment, d_i = G_i q with
@@ -8,6 +8,7 @@ antisymmetric part is the (non-conservative) external moment and is dropped.
 
 Damping is Rayleigh, C = dM M + dK K (Eq. 41). The modal damping ratio of a mode at w is
 zeta = dM / (2 w) + dK w / 2; :func:`rayleigh_from_modal_ratio` fits dM, dK to a ratio.
+Natural frequencies and classified modes: :mod:`cdpr_dynamics.modes` (above this module).
 """
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.linalg.blas import dsbmv as _sbmv
+from scipy.linalg.lapack import dpbtrf as _pbtrf, dpbtrs as _pbtrs
 
 from cdpr_dynamics.models.base import CableAssembly
 from cdpr_dynamics.robot import Geometry, Robot, skew
@@ -97,19 +100,43 @@ class PlatformSystem:
     def dynamic_stiffness(self, omega_rad_s, damping: Damping = Damping()) -> np.ndarray:
         """Condensed complex dynamic stiffness Z(w) = K + i w C - w^2 M on the platform DOFs.
 
-        Shape (len(omega), ndof, ndof); the cables' interior DOFs are eliminated exactly.
+        Shape (len(omega), ndof, ndof); the cables' interior DOFs are eliminated exactly. With
+        Rayleigh damping Z = (1 + i w dK) (K_p - lam M_p + sum_i G_i^T S_i(lam) G_i) at
+        lam = (w^2 - i w dM)/(1 + i w dK); undamped, lam = w^2 is real and so is the arithmetic.
         """
         w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
+        if damping.mass_factor == 0.0 and damping.stiffness_factor == 0.0:
+            lam = w * w
+            own = self.platform_stiffness[None] - lam[:, None, None] * self.platform_mass[None]
+            return (own + self._cables_at(lam)).astype(complex)
         scale = 1.0 + 1j * w * damping.stiffness_factor
         lam = (w * w - 1j * w * damping.mass_factor) / scale
-        cables = self.cables_on_platform(self.assembly.end_stiffness(lam))
         own = self.platform_stiffness[None] - lam[:, None, None] * self.platform_mass[None]
-        return scale[:, None, None] * (own + cables)
+        return scale[:, None, None] * (own + self._cables_at(lam))
+
+    def _cables_at(self, lam: np.ndarray) -> np.ndarray:
+        """sum_i G_i^T S_i(lam) G_i, (nl, ndof, ndof) or (ndof, ndof) where it is constant.
+
+        Shortcuts of :meth:`cables_on_platform` (same numbers): a constant end stiffness
+        (massless models) is condensed once; axial/transverse cables (``fem``, ``dsm``) map
+        their 2n scalars per frequency with one small GEMM instead of forming 3x3 blocks.
+        """
+        assembly = self.assembly
+        if assembly.constant_stiffness is not None:
+            return self._constant_cables
+        if assembly.decoupled is None:
+            return self.cables_on_platform(assembly.end_stiffness(lam))
+        cables = assembly.decoupled
+        flat = cables.stiffness(lam).reshape(2 * cables.unit.shape[0], lam.size)   # (2n, nl)
+        out = flat.real.T @ self._decoupled_congruence
+        if np.iscomplexobj(flat):
+            out = out + 1j * (flat.imag.T @ self._decoupled_congruence)
+        return out.reshape(-1, self.platform_dofs, self.platform_dofs)
 
     def cables_on_platform(self, ends: np.ndarray) -> np.ndarray:
         """sum_i G_i^T S_i G_i: stacked cable end stiffnesses (nl, n, 3, 3) on the platform
         DOFs, (nl, ndof, ndof); real in, real out."""
-        flat = ends.reshape(ends.shape[0], -1)
+        flat = ends.reshape(ends.shape[0], self._congruence.shape[0])
         out = flat.real @ self._congruence   # real GEMMs: far faster than a complex one here
         if np.iscomplexobj(flat):
             out = out + 1j * (flat.imag @ self._congruence)
@@ -122,8 +149,27 @@ class PlatformSystem:
         nd = self.platform_dofs
         return np.einsum('cia,cjb->cijab', g, g).reshape(-1, nd * nd)
 
+    @functools.cached_property
+    def _decoupled_congruence(self) -> np.ndarray:
+        """(2n, ndof^2): rows G_i^T u_i u_i^T G_i (axial), then G_i^T (I - u_i u_i^T) G_i."""
+        unit = self.assembly.decoupled.unit
+        n = unit.shape[0]
+        uu = (unit[:, :, None] * unit[:, None, :]).reshape(n, 9)
+        per_cable = self._congruence.reshape(n, 9, -1)
+        return np.concatenate([np.einsum('ck,ckm->cm', uu, per_cable),
+                               np.einsum('ck,ckm->cm', np.eye(3).ravel() - uu, per_cable)])
+
+    @functools.cached_property
+    def _constant_cables(self) -> np.ndarray:
+        """(ndof, ndof) sum_i G_i^T S_i G_i of a constant (massless) end stiffness."""
+        return self.cables_on_platform(self.assembly.constant_stiffness[None])[0]
+
     def static_stiffness(self) -> np.ndarray:
         """(ndof, ndof) static stiffness of the platform, all cable DOFs condensed (N/m, ...)."""
+        return self._static_stiffness.copy()
+
+    @functools.cached_property
+    def _static_stiffness(self) -> np.ndarray:
         return self.dynamic_stiffness(np.zeros(1))[0].real
 
     def matrices(self, dense: bool = False):
@@ -145,7 +191,7 @@ def _assemble(platform: np.ndarray, diag: np.ndarray, off: np.ndarray, g: np.nda
     nd = platform.shape[0]
     ncab, nodes = diag.shape[:2]
     interior = nodes - 1
-    dense = platform + np.einsum('cia,cij,cjb->ab', g, diag[:, -1], g)
+    dense = _platform_block(platform, diag, g)
     rows, cols, vals = [np.repeat(np.arange(nd), nd)], [np.tile(np.arange(nd), nd)], \
         [dense.ravel()]
     if interior:
@@ -167,7 +213,7 @@ def _assemble(platform: np.ndarray, diag: np.ndarray, off: np.ndarray, g: np.nda
             cols += [np.broadcast_to(c, shape).ravel(), np.broadcast_to(r, shape).ravel()]
             vals += [blk.ravel(), blk.ravel()]      # (c, r) entries: the transpose
         # last interior node to the platform through the attachment map
-        coupling = np.einsum('cij,cjb->cib', off[:, -1], g)       # (ncab, 3, nd)
+        coupling = _end_coupling(off, g)                           # (ncab, 3, nd)
         r = base[:, -1, None, None] + i3[:, None]                  # (ncab, 3, 1)
         c = np.arange(nd)[None, None, :]
         shape = coupling.shape
@@ -181,6 +227,18 @@ def _assemble(platform: np.ndarray, diag: np.ndarray, off: np.ndarray, g: np.nda
         np.add.at(out, (rows, cols), vals)
         return out
     return sp.csc_matrix((vals, (rows, cols)), shape=(size, size))
+
+
+def _platform_block(platform: np.ndarray, diag: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(ndof, ndof) platform block of a global matrix: P + sum_c G_c^T D_c,end G_c (one GEMM
+    over the stacked cables)."""
+    nd = g.shape[2]
+    return platform + g.reshape(-1, nd).T @ (diag[:, -1] @ g).reshape(-1, nd)
+
+
+def _end_coupling(off: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(ncab, 3, ndof): each cable's last interior node to the platform, O_c,last G_c."""
+    return off[:, -1] @ g
 
 
 def platform_system(robot: Robot, geometry: Geometry, assembly: CableAssembly) -> PlatformSystem:
@@ -222,49 +280,65 @@ def frequency_response(system: PlatformSystem, frequency_hz, force_n,
     """A(w) = Z(w)^-1 F0 for every frequency, batched over frequencies.
 
     Where Z(w) is singular (an undamped FRF exactly at a resonance) the amplitude is inf and
-    ``singular`` marks the frequency instead of raising.
+    ``singular`` marks the frequency instead of raising. Singular means sigma_min(Z) <= 1e-12 s,
+    s the larger of ||Z||_F and the stiffness and inertia scale max|K_static| + w^2 max|M_p|
+    (Z itself can vanish entirely at a repeated resonance, so its own norm is no scale), with
+    sigma_min estimated as 1/||Z^-1||_F = |det Z| / ||adj Z||_F (between sigma_min/sqrt(ndof)
+    and sigma_min) from the adjugate (3 DOFs) or inverse (6 DOFs) that also solves.
     """
     f = np.atleast_1d(np.asarray(frequency_hz, dtype=float))
-    z = system.dynamic_stiffness(2.0 * np.pi * f, damping)
+    w = 2.0 * np.pi * f
+    z = system.dynamic_stiffness(w, damping)
+    nd = system.platform_dofs
     load = np.concatenate([np.asarray(force_n, dtype=float),
-                           np.asarray(moment_nm, dtype=float)])[:system.platform_dofs]
-    # singular: smallest singular value at round-off level of the stiffness and inertia scale
-    # (Z itself can vanish entirely at a repeated resonance, so its own norm is no scale)
-    sigma = np.linalg.svd(z, compute_uv=False)
-    scale = np.maximum(sigma[:, 0], np.abs(system.static_stiffness()).max()
-                       + (2 * np.pi * f) ** 2 * np.abs(system.platform_mass).max())
-    singular = ~(sigma[:, -1] > 1e-12 * scale)
-    response = np.full((f.size, system.platform_dofs), np.inf + 0j)
-    ok = ~singular
-    if np.any(ok):
-        response[ok] = np.linalg.solve(z[ok], np.broadcast_to(load, (ok.sum(), load.size))
-                                       [..., None])[..., 0]
+                           np.asarray(moment_nm, dtype=float)])[:nd]
+    scale = np.maximum(_frobenius(z), np.abs(system._static_stiffness).max()
+                       + w * w * np.abs(system.platform_mass).max())
+    with np.errstate(all='ignore'):   # singular frequencies: replaced below
+        if nd == 3:
+            cofactor = _cofactors3(z)
+            det = np.einsum('nj,nj->n', z[:, 0], cofactor[:, 0])
+            response = np.einsum('nji,j->ni', cofactor, load) / det[:, None]
+            sigma = np.abs(det) / _frobenius(cofactor)
+        else:
+            try:
+                inverse = np.linalg.inv(z)
+            except np.linalg.LinAlgError:       # exactly singular somewhere: one at a time
+                inverse = np.stack([_inverse_or_nan(a) for a in z])
+            response = inverse @ load.astype(complex)
+            sigma = 1.0 / _frobenius(inverse)
+    singular = ~(sigma > 1e-12 * scale)
+    response[singular] = np.inf
     return FrequencyResponse(f, response, singular)
 
 
-# --------------------------------------------------------------------------- natural frequencies
+def _frobenius(a: np.ndarray) -> np.ndarray:
+    """||a_k||_F of stacked complex matrices (n, m, m): one dot product over the float view."""
+    flat = np.ascontiguousarray(a).reshape(a.shape[0], a[0].size if a.size else 0).view(float)
+    return np.sqrt(np.einsum('ni,ni->n', flat, flat))
 
-def natural_frequencies(system: PlatformSystem, count: int = 12) -> np.ndarray:
-    """The ``count`` lowest undamped natural frequencies (Hz), ascending (fewer if DOFs lack).
 
-    Solves K phi = w^2 M phi of the global matrices: dense for small models, shift-invert Lanczos
-    (scipy eigsh, sigma = 0) for large ones. A model without finite matrices (``dsm``) goes to
-    Wittrick-Williams bisection on det Z(w): :func:`models.dsm.natural_frequencies_dsm`.
-    """
-    if system.assembly.blocks is None:
-        from cdpr_dynamics.models.dsm import natural_frequencies_dsm
-        return natural_frequencies_dsm(system, count)
-    k, m = system.matrices()
-    n = k.shape[0]
-    count = min(count, n)
-    if n <= DENSE_EIGEN_DOFS or count >= n - 1:       # eigsh needs count < n - 1
-        values = scipy.linalg.eigh(k.toarray(), m.toarray(), eigvals_only=True,
-                                   subset_by_index=[0, count - 1])
-    else:
-        values = spla.eigsh(k, k=count, M=m, sigma=0.0, which='LM',
-                            return_eigenvectors=False)
-    return np.sqrt(np.clip(np.sort(values.real), 0.0, None)) / (2.0 * np.pi)
+_NEXT = np.array([1, 2, 0])
+_AFTER = np.array([2, 0, 1])
 
+
+def _cofactors3(a: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) signed cofactors C_ij = a_(i+1)(j+1) a_(i+2)(j+2) - a_(i+1)(j+2) a_(i+2)(j+1)
+    (indices mod 3) of stacked 3x3 matrices: adj a = C^T, det a = sum_j a_0j C_0j."""
+    i1, j1 = _NEXT[:, None], _NEXT[None, :]
+    i2, j2 = _AFTER[:, None], _AFTER[None, :]
+    return a[:, i1, j1] * a[:, i2, j2] - a[:, i1, j2] * a[:, i2, j1]
+
+
+def _inverse_or_nan(a: np.ndarray) -> np.ndarray:
+    """a^-1, or nan where LAPACK finds a exactly singular (its sigma_min estimate is then nan)."""
+    try:
+        return np.linalg.inv(a)
+    except np.linalg.LinAlgError:
+        return np.full(a.shape, np.nan + 0j)
+
+
+# --------------------------------------------------------------------------- platform modes
 
 def platform_frequencies(system: PlatformSystem) -> np.ndarray:
     """Natural frequencies (Hz) of the platform mass on the statically condensed cables:
@@ -290,25 +364,12 @@ class Newmark:
 
     def __init__(self, stiffness, mass, damping: Damping, dt_s: float, alpha: float = 0.5,
                  beta: float = 0.25):
-        if not (dt_s > 0 and alpha >= 0.5 and beta > 0):
-            raise DynamicsError(f'Newmark needs dt > 0, alpha >= 0.5 and beta > 0 (got dt = '
-                                f'{dt_s}, alpha = {alpha}, beta = {beta})')
+        self._setup(dt_s, alpha, beta)
         dense = not sp.issparse(stiffness)
         self.k = np.asarray(stiffness, dtype=float) if dense else sp.csc_matrix(stiffness)
         self.m = np.asarray(mass, dtype=float) if dense else sp.csc_matrix(mass)
         self.c = damping.mass_factor * self.m + damping.stiffness_factor * self.k
-        if beta < alpha / 2.0:
-            w_max = math.sqrt(max(_largest_eigenvalue(self.k, self.m), 0.0))
-            limit = 1.0 / math.sqrt(alpha / 2.0 - beta)
-            if w_max * dt_s > limit:
-                raise DynamicsError(
-                    f'Newmark with beta = {beta} < alpha/2 is unstable for dt = {dt_s} s: the '
-                    f'highest mode ({w_max / 2 / math.pi:.4g} Hz) needs dt <= '
-                    f'{limit / w_max:.3g} s')
-        dt = dt_s
-        self.a = (1 / (beta * dt * dt), alpha / (beta * dt), 1 / (beta * dt), 1 / (2 * beta) - 1,
-                  alpha / beta - 1, dt / 2 * (alpha / beta - 2), dt * (1 - alpha), alpha * dt)
-        self.dt_s = dt
+        self._check_stability(alpha, beta)
         effective = self.k + self.a[0] * self.m + self.a[1] * self.c         # Eq. 46
         if dense:   # small models: a dense LU beats a sparse one's call overhead
             factor = scipy.linalg.lu_factor(effective)
@@ -318,9 +379,30 @@ class Newmark:
         n = self.k.shape[0]
         self.u, self.v, self.acc = np.zeros(n), np.zeros(n), np.zeros(n)
 
+    def _setup(self, dt_s: float, alpha: float, beta: float) -> None:
+        """Check the parameters; the coefficients a0..a7 of Eqs. 46-50."""
+        if not (dt_s > 0 and alpha >= 0.5 and beta > 0):
+            raise DynamicsError(f'Newmark needs dt > 0, alpha >= 0.5 and beta > 0 (got dt = '
+                                f'{dt_s}, alpha = {alpha}, beta = {beta})')
+        dt = dt_s
+        self.a = (1 / (beta * dt * dt), alpha / (beta * dt), 1 / (beta * dt), 1 / (2 * beta) - 1,
+                  alpha / beta - 1, dt / 2 * (alpha / beta - 2), dt * (1 - alpha), alpha * dt)
+        self.dt_s = dt
+
+    def _check_stability(self, alpha: float, beta: float) -> None:
+        """Refuse (DynamicsError) a conditionally stable scheme whose dt is too long."""
+        if beta < alpha / 2.0:
+            w_max = math.sqrt(max(_largest_eigenvalue(self.k, self.m), 0.0))
+            limit = 1.0 / math.sqrt(alpha / 2.0 - beta)
+            if w_max * self.dt_s > limit:
+                raise DynamicsError(
+                    f'Newmark with beta = {beta} < alpha/2 is unstable for dt = {self.dt_s} s: '
+                    f'the highest mode ({w_max / 2 / math.pi:.4g} Hz) needs dt <= '
+                    f'{limit / w_max:.3g} s')
+
     def reset(self) -> None:
         """Back to rest (u = v = a = 0: Eq. 43 with no load at t = 0)."""
-        n = self.k.shape[0]
+        n = self.u.size
         self.u, self.v, self.acc = np.zeros(n), np.zeros(n), np.zeros(n)
 
     def step(self, force: np.ndarray) -> np.ndarray:
@@ -333,6 +415,166 @@ class Newmark:
         self.v = v + a6 * acc + a7 * acc_new
         self.u, self.acc = u_new, acc_new
         return u_new
+
+
+class ChainNewmark(Newmark):
+    """:class:`Newmark` of a :class:`PlatformSystem` factorised through its chains: the same
+    steps (Eqs. 42-50), without assembling or sparse-factorising the global matrices.
+
+    The effective matrix A = K + a0 M + a1 C (Eq. 46; with C = dM M + dK K it is
+    (1 + a1 dK) K + (a0 + a1 dM) M) has the platform DOFs p first and then the cables' interior
+    nodes i, every cable a block-tridiagonal chain coupled to the platform only through its
+    last interior node: an arrow
+
+        A = [A_pp  A_ip^T; A_ip  A_ii],   A_ii = blockdiag(chains): a symmetric band of half
+                                          width 5 (3x3 blocks, one node to the next),
+
+    with A_pp = P + sum_c G_c^T D_c,end G_c (P: the platform's own mass or stiffness) and the
+    rows of cable c's last interior node in A_ip equal to O_c,last G_c. The band is Cholesky-
+    factorised (LAPACK dpbtrf), Z = A_ii^-1 A_ip and the Schur complement S = A_pp - A_ip^T Z
+    are formed once, and each step solves A u = r by
+
+        y = A_ii^-1 r_i,   u_p = S^-1 (r_p - A_ip^T y),   u_i = y - Z u_p,
+
+    while its right side (Eq. 47) takes M x + K y' from the same bands (BLAS dsbmv) and
+    couplings: O(n) per step, no sparse matrices. Massless models (``spring``, ``catenary``)
+    have no interior: u = S^-1 r with S = A_pp. ``k``, ``m`` and ``c`` (sparse, csc) are
+    assembled only when asked for (the state carried across a model change, tests).
+
+    Raises :class:`DynamicsError` for invalid parameters (as :class:`Newmark`) and
+    ``np.linalg.LinAlgError`` where the band is not positive definite (then use
+    :class:`Newmark`: :func:`newmark_for` does).
+    """
+
+    def __init__(self, system: PlatformSystem, damping: Damping, dt_s: float,
+                 alpha: float = 0.5, beta: float = 0.25):
+        blocks = system.assembly.blocks
+        if blocks is None:
+            raise DynamicsError(f'method {system.assembly.method} has no finite matrices; '
+                                'use fem or fem_sag for modes and time histories')
+        self._system, self._damping = system, damping
+        self._setup(dt_s, alpha, beta)
+        a0, a1, a2, a3, a4, a5, a6, _ = self.a
+        dm, dk = damping.mass_factor, damping.stiffness_factor
+        # what a step needs of (u, v, a), one GEMM: the right side of Eq. 47,
+        # M (a0 u + a2 v + a3 a) + C (a1 u + a4 v + a5 a) = M x + K y, and the parts of
+        # Eqs. 48-49 known before the solve: a' = a0 u' + w_a, v' = w_v + a7 a'
+        self._state_map = np.array([[a0 + dm * a1, a2 + dm * a4, a3 + dm * a5],     # x
+                                    [dk * a1, dk * a4, dk * a5],                    # y
+                                    [-a0, -a2, -a3],                                # w_a
+                                    [0.0, 1.0, a6]])                                # w_v
+        scale_k, scale_m = 1.0 + a1 * dk, a0 + a1 * dm                   # A = sK K + sM M
+        g = system.geometry.attachment_map()
+        nd = system.platform_dofs
+        self._nd = nd
+        k_pp = _platform_block(system.platform_stiffness, blocks.k_diag, g)
+        m_pp = _platform_block(system.platform_mass, blocks.m_diag, g)
+        self._p_pair = np.hstack([m_pp, k_pp])                             # (nd, 2 nd)
+        a_pp = scale_k * k_pp + scale_m * m_pp
+        interior = blocks.nodes - 1
+        self._n = nd + 3 * interior * blocks.k_diag.shape[0]
+        if interior == 0:
+            self._s_inv = np.linalg.inv(a_pp)
+            self._b_pair = None
+        else:
+            self._k_band = _chain_band(blocks.k_diag, blocks.k_off)
+            self._m_band = _chain_band(blocks.m_diag, blocks.m_off)
+            factor, info = _pbtrf(scale_k * self._k_band + scale_m * self._m_band, lower=1)
+            if info != 0:
+                raise np.linalg.LinAlgError(f'chain band not positive definite (dpbtrf info '
+                                            f'{info})')
+            self._factor = factor
+            b_k = _chain_coupling(blocks.k_off, g, self._n - nd)
+            b_m = _chain_coupling(blocks.m_off, g, self._n - nd)
+            self._b_pair = np.hstack([b_m, b_k])                           # (ni, 2 nd)
+            self._b_stack = np.vstack([b_m, b_k])                          # (2 ni, nd)
+            coupling = scale_k * b_k + scale_m * b_m                       # A_ip
+            z, info = _pbtrs(factor, coupling, lower=1)
+            self._coupling, self._z = coupling, z
+            self._s_inv = np.linalg.inv(a_pp - coupling.T @ z)
+        self.u, self.v, self.acc = np.zeros(self._n), np.zeros(self._n), np.zeros(self._n)
+        self._check_stability(alpha, beta)
+
+    @functools.cached_property
+    def _matrices(self):
+        return self._system.matrices()
+
+    @property
+    def k(self):
+        """Global stiffness (csc), assembled on first use."""
+        return self._matrices[0]
+
+    @property
+    def m(self):
+        """Global mass (csc), assembled on first use."""
+        return self._matrices[1]
+
+    @functools.cached_property
+    def c(self):
+        """Rayleigh damping dM M + dK K (csc), assembled on first use."""
+        return self._damping.mass_factor * self.m + self._damping.stiffness_factor * self.k
+
+    def _solve(self, rhs: np.ndarray) -> np.ndarray:
+        """A^-1 rhs through the band and the Schur complement (class docstring)."""
+        nd = self._nd
+        if self._b_pair is None:
+            return self._s_inv @ rhs
+        y = _pbtrs(self._factor, rhs[nd:], lower=1)[0]
+        up = self._s_inv @ (rhs[:nd] - y @ self._coupling)
+        return np.concatenate([up, y - self._z @ up])
+
+    def step(self, force: np.ndarray) -> np.ndarray:
+        """Advance one step to the load ``force`` at t + dt (Eqs. 47-50); return u."""
+        x, y, w_a, w_v = self._state_map @ np.vstack((self.u, self.v, self.acc))
+        nd = self._nd
+        rhs = np.array(force, dtype=float)                  # force + M x + K y
+        if self._b_pair is None:
+            rhs += self._p_pair @ np.concatenate((x, y))
+        else:
+            pair = np.concatenate((x[:nd], y[:nd]))
+            rhs[:nd] += self._p_pair @ pair + np.concatenate((x[nd:], y[nd:])) @ self._b_stack
+            inner = _sbmv(5, 1.0, self._k_band, y[nd:], lower=1)
+            inner = _sbmv(5, 1.0, self._m_band, x[nd:], beta=1.0, y=inner, lower=1,
+                          overwrite_y=1)
+            rhs[nd:] += inner + self._b_pair @ pair
+        u_new = self._solve(rhs)
+        acc_new = self.a[0] * u_new + w_a
+        self.v = w_v + self.a[7] * acc_new
+        self.u, self.acc = u_new, acc_new
+        return u_new
+
+
+#: (k, b, a): row offset k in the lower band, column component b, row component a of a node's
+#: diagonal block (a = b + k) or, with k >= 3, of the next node's off-diagonal block
+#: (a = k - 3 + b); see :func:`_chain_band`
+_BAND_DIAG = tuple((k, b, b + k) for k in range(3) for b in range(3 - k))
+_BAND_OFF = tuple((k, b, k - 3 + b) for k in range(1, 6) for b in range(3) if 0 <= k - 3 + b <= 2)
+
+
+def _chain_band(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """(6, ni) lower band storage (LAPACK: band[r - c, c] = A[r, c], Fortran order) of the
+    cables' interior chains, one chain after another: the symmetric block-tridiagonal blocks
+    ``diag[:, :-1]`` and ``off[:, :-1]`` of :class:`~cdpr_dynamics.models.base.ChainBlocks`.
+
+    Column c = (cable, node j, component b): band[k, c] = D_j[b + k, b] for b + k <= 2 (the
+    node's own block) and, below it, A[3 (j+1) + a, 3 j + b] = O_j[b, a] with a = k - 3 + b
+    (block (j, j+1) transposed); zero past each chain's last node. Built as the C-ordered
+    (cables, nodes, 3, 6) array whose transpose is the Fortran band: no copies."""
+    cables, interior = diag.shape[0], diag.shape[1] - 1
+    band = np.zeros((cables, interior, 3, 6))
+    for k, b, a in _BAND_DIAG:
+        band[:, :, b, k] = diag[:, :-1, a, b]
+    for k, b, a in _BAND_OFF:
+        band[:, :-1, b, k] = off[:, :-1, b, a]
+    return band.reshape(-1, 6).T
+
+
+def _chain_coupling(off: np.ndarray, g: np.ndarray, ni: int) -> np.ndarray:
+    """(ni, ndof) dense A_ip: the rows of each cable's last interior node, O_c,last G_c."""
+    cables, interior = off.shape[0], off.shape[1]
+    out = np.zeros((cables, interior, 3, g.shape[2]))
+    out[:, -1] = _end_coupling(off, g)
+    return out.reshape(ni, -1)
 
 
 def _largest_eigenvalue(k, m) -> float:

@@ -33,6 +33,8 @@ from math import comb
 
 import numpy as np
 
+from cdpr_dynamics.robot import cross
+
 #: more facet normals than this: keep this many (random subsets) as an outer bound, decide the
 #: rest with the inner test and an LP (many cables on a 6-DOF platform).
 MAX_NORMALS = 4000
@@ -89,6 +91,9 @@ def cable_crossing(anchors_m, attachments_world_m, clearance_m: float) -> str:
 
 @lru_cache(maxsize=16)
 def _subsets(n: int, k: int) -> np.ndarray:
+    """(C(n, k), k) index subsets of n generators (for k = 2 the pairs i < j of triu_indices)."""
+    if k == 2:
+        return np.column_stack(np.triu_indices(n, 1))
     return np.array(list(combinations(range(n), k)))
 
 
@@ -101,7 +106,7 @@ def _normals_of(wt: np.ndarray, subsets: np.ndarray) -> np.ndarray:
     """Unit normals (k, d) of the hyperplanes spanned by the generator ``subsets`` (k, d-1)."""
     d = wt.shape[0]
     if d == 3:
-        normals = np.cross(wt.T[subsets[:, 0]], wt.T[subsets[:, 1]])
+        normals = cross(wt.T[subsets[:, 0]], wt.T[subsets[:, 1]])
     else:
         _, sing, vt = np.linalg.svd(wt.T[subsets])    # null vector: last right singular vector
         normals = vt[:, -1, :][sing[:, -1] > 1e-9 * sing[:, 0]]
@@ -110,13 +115,12 @@ def _normals_of(wt: np.ndarray, subsets: np.ndarray) -> np.ndarray:
     return normals[keep] / norm[keep, None]
 
 
-def _facet_normals(wt: np.ndarray) -> np.ndarray | None:
-    """Unit normals of all the zonotope's facets, (k, d); None when too many or rank deficient."""
+def _facet_normals(wt: np.ndarray, full_rank: bool = False) -> np.ndarray | None:
+    """Unit normals of all the zonotope's facets, (k, d); None when too many or rank deficient
+    (``full_rank``: the caller has checked the rank already)."""
     d, n = wt.shape
-    if n < d or comb(n, d - 1) > MAX_NORMALS or not _rank_full(wt):
+    if n < d or comb(n, d - 1) > MAX_NORMALS or not (full_rank or _rank_full(wt)):
         return None
-    if d == 3:
-        return _normals_of(wt, np.column_stack(np.triu_indices(n, 1)))
     return _normals_of(wt, _subsets(n, d - 1))
 
 
@@ -136,17 +140,19 @@ class WrenchSet:
     external wrench f (force then moment) is feasible when ``required - f`` lies in Z.
     ``exact``: all facet normals are known (the test is one matrix product); otherwise the
     outer bound, the inner test and, between them, an LP decide (module docstring).
+    ``full_rank``: W^T is known to have rank d (checked with singular values above 1e-9 of
+    the largest, as here): its SVD is skipped.
     """
 
     def __init__(self, structure_matrix, t_min_n: float, t_max_n: float, required,
-                 tolerance_n: float = 1e-6):
+                 tolerance_n: float = 1e-6, full_rank: bool = False):
         self.wt = np.asarray(structure_matrix, dtype=float)
         self.required = np.asarray(required, dtype=float)
         self.t_min_n, self.t_max_n = float(t_min_n), float(t_max_n)
         self.mid = 0.5 * (t_min_n + t_max_n)
         self.centre = self.wt @ np.full(self.wt.shape[1], self.mid)
         self.half = 0.5 * (t_max_n - t_min_n)
-        self.normals = _facet_normals(self.wt)
+        self.normals = _facet_normals(self.wt, full_rank)
         self.exact = self.normals is not None
         if not self.exact:
             self.normals = _sampled_normals(self.wt)

@@ -15,6 +15,7 @@ offline replay and the live node give the same numbers by construction.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -26,7 +27,7 @@ from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, build_system, da
                                     equilibrium, equilibrium_for, model_warnings,
                                     new_tension_solver, point_displacement)
 from cdpr_dynamics.config import Settings
-from cdpr_dynamics.dynamics import DynamicsError, Newmark, PlatformSystem
+from cdpr_dynamics.dynamics import ChainNewmark, DynamicsError, Newmark, PlatformSystem
 from cdpr_dynamics.feasibility import WrenchSet
 from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.robot import (matrix_to_quaternion, quaternion_product, quaternion_to_matrix,
@@ -69,10 +70,11 @@ class Prediction:
     quaternion: np.ndarray
 
 
-def rotated_quaternion(rotation: np.ndarray, theta_rad) -> np.ndarray:
+def rotated_quaternion(rotation: np.ndarray, theta_rad, base=None) -> np.ndarray:
     """Quaternion (qx, qy, qz, qw) of exp([theta]x) R: the rotation vector ``theta_rad``
-    (world frame, rad) applied after ``rotation``; exactly R's quaternion for theta = 0."""
-    base = matrix_to_quaternion(rotation)
+    (world frame, rad) applied after ``rotation``; exactly R's quaternion for theta = 0.
+    ``base``: R's quaternion where the caller has it already."""
+    base = matrix_to_quaternion(rotation) if base is None else base
     if not np.any(theta_rad):
         return base
     return quaternion_product(rotation_vector_quaternion(theta_rad), base)
@@ -101,6 +103,7 @@ class LivePredictor:
         self._load = None
         self.max_steps_per_wrench = MAX_STEPS_PER_WRENCH
         self.notice = ''                 # what the last advance() left out, or ''
+        self._quaternion_of = None       # (rotation, its quaternion) of the last prediction
         self.update_pose(settings.initial_position_m, rotation=settings.initial_rotation,
                          force=True)
 
@@ -109,9 +112,11 @@ class LivePredictor:
     def _moved(self, position, rotation) -> bool:
         if self.position_m is None:
             return True
+        step = position - self.position_m
+        if math.sqrt(step @ step) > self.pose_tolerance_m:     # |step|, as np.linalg.norm
+            return True
         turn = np.arccos(np.clip((np.trace(self.rotation.T @ rotation) - 1) / 2, -1, 1))
-        return (np.linalg.norm(position - self.position_m) > self.pose_tolerance_m
-                or turn > self.angle_tolerance_rad)
+        return turn > self.angle_tolerance_rad
 
     def update_pose(self, position_m, quaternion=None, rotation=None,
                     force: bool = False) -> PoseUpdate:
@@ -130,8 +135,11 @@ class LivePredictor:
         eq, system, warnings = self._build(eq)
         timings['model'] = time.perf_counter() - start
         s = self.settings    # the wrenches the cables can hold here (per state, not per wrench)
-        wrench_set = WrenchSet(_tangent_structure(eq), s.tension_min_n, s.tension_max_n,
-                               required_wrench(s.robot, s.external_force_n, s.external_moment_nm))
+        chord = eq.statics == 'chord'     # W^T itself, its rank checked by equilibrium()
+        wrench_set = WrenchSet(eq.geometry.structure_matrix if chord else _tangent_structure(eq),
+                               s.tension_min_n, s.tension_max_n,
+                               required_wrench(s.robot, s.external_force_n, s.external_moment_nm),
+                               full_rank=chord)
         start = time.perf_counter()
         integrator = self._integrator(system)
         timings['factorisation'] = time.perf_counter() - start
@@ -200,10 +208,7 @@ class LivePredictor:
         kept and the cable interior follows them quasi-statically, u_i = -K_ii^-1 K_ip u_p
         (likewise v, a), so a method toggle never restarts the prediction from rest.
         """
-        s = self.settings
-        k, m = system.matrices(dense=system.dofs <= DENSE_NEWMARK_DOFS)
-        integrator = Newmark(k, m, damping_for(s, system), s.dt_s, s.newmark_alpha,
-                             s.newmark_beta)
+        integrator = newmark_for(system, damping_for(self.settings, system), self.settings)
         old = self.integrator
         if old is not None:
             carry_state(old, integrator, system.platform_dofs)
@@ -280,8 +285,10 @@ class LivePredictor:
         displacement = point_displacement(q, self.rotation, point_m)
         arm = self.rotation @ np.asarray(point_m, dtype=float)
         theta = q[3:6] if nd == 6 else np.zeros(3)
+        if self._quaternion_of is None or self._quaternion_of[0] is not self.rotation:
+            self._quaternion_of = (self.rotation, matrix_to_quaternion(self.rotation))
         return Prediction(displacement, self.position_m + arm + displacement,
-                          rotated_quaternion(self.rotation, theta))
+                          rotated_quaternion(self.rotation, theta, self._quaternion_of[1]))
 
     def rebase_time(self) -> None:
         """Take the next wrench's stamp as the new time origin, keeping the state of motion
@@ -296,6 +303,19 @@ class LivePredictor:
         self._remainder_ns = 0
         if self.integrator is not None:
             self.integrator.reset()
+
+
+def newmark_for(system: PlatformSystem, damping, settings: Settings) -> Newmark:
+    """The integrator of ``system`` with the ``newmark.*`` settings: factorised through its
+    cable chains (:class:`~cdpr_dynamics.dynamics.ChainNewmark`, no global matrices), or from
+    the global matrices (dense up to ``DENSE_NEWMARK_DOFS``, else a sparse LU) where a chain
+    band is not positive definite."""
+    s = settings
+    try:
+        return ChainNewmark(system, damping, s.dt_s, s.newmark_alpha, s.newmark_beta)
+    except np.linalg.LinAlgError:
+        k, m = system.matrices(dense=system.dofs <= DENSE_NEWMARK_DOFS)
+        return Newmark(k, m, damping, s.dt_s, s.newmark_alpha, s.newmark_beta)
 
 
 def carry_state(old: Newmark, new: Newmark, platform_dofs: int) -> None:

@@ -92,6 +92,7 @@ OUTPUT_DEPTH = 1000      # predictions kept for a reliable subscriber that lags:
 #                          (a depth of 10 drops what a subscriber busy for 10 ms has not taken)
 SWITCH_INTERVAL_S = 0.0005   # the GIL changes hands at least this often (Python's default,
 #                              5 ms, would let the services thread hold a wrench that long)
+MARKERS_PERIOD_S = 0.5    # markers of a new equilibrium at most this often (milliseconds each)
 MODES_PERIOD_S = 0.5      # modes refreshed after rebuilds at most this often (a moving pose
 #                           rebuilds at 50 Hz and more; its modes change slowly)
 
@@ -253,8 +254,8 @@ class DynamicsNode(Node):
         self._publish_s = collections.deque(maxlen=4096)   # handing the prediction to DDS
         self._wrench_times = collections.deque(maxlen=8192)
         self._frf_cache = collections.OrderedDict()
-        self._frf = {'calls': 0, 'cache_hits': 0, 'failures': 0, 'last_ms': 0.0,
-                     'last_error': ''}
+        self._frf = {'calls': 0, 'answered': 0, 'waiting': 0, 'cache_hits': 0, 'failures': 0,
+                     'last_ms': 0.0, 'last_error': ''}
         self._modal_warnings: list[str] = []
         self._lowest_hz = float('nan')
         self._platform_hz = np.zeros(0)     # classified platform modes up to frf.f_max_hz
@@ -289,6 +290,7 @@ class DynamicsNode(Node):
         self._markers_arrow = None
         self._markers = None
         self._markers_stale = False
+        self._markers_built = -np.inf
         self.pose_sub = self.io.create_subscription(PoseStamped, 'pose', self.on_pose,
                                                     qos_profile_sensor_data)
         self.wrench_sub = self.io.create_subscription(WrenchStamped, 'wrench', self.on_wrench,
@@ -485,7 +487,8 @@ class DynamicsNode(Node):
         fill_pose(self._pose_msg, out.position_m, out.quaternion, stamp)
         computed = time.perf_counter()
         self.displacement_pub.publish(self._displacement_msg)
-        self.pose_pub.publish(self._pose_msg)
+        if self.pose_pub.get_subscription_count():    # serialising it for nobody costs
+            self.pose_pub.publish(self._pose_msg)
         if self.wrench_health.accept():
             self._diag_dirty = True
         if self.inputs.notice:
@@ -719,9 +722,7 @@ class DynamicsNode(Node):
             while len(self._frf_cache) > self._flat['node.frf_cache_size']:
                 self._frf_cache.popitem(last=False)
         if arrays is not None and not call.parsed.overrides and call.key[0] == self.revision:
-            platform = arrays.get('platform_natural_frequencies_hz')
-            if not isinstance(platform, str) and platform is not None:
-                self._platform_hz = np.asarray(platform)
+            self._platform_hz = np.asarray(arrays['platform_natural_frequencies_hz'])
             self._set_modal(arrays['natural_frequencies_hz'])
         return arrays, error
 
@@ -732,6 +733,8 @@ class DynamicsNode(Node):
             self._frf['last_error'] = error
             self.get_logger().warning(error, throttle_duration_sec=LOG_PERIOD_S)
         self._frf['last_ms'] = (time.perf_counter() - call.start) * 1e3
+        self._frf['answered'] += 1
+        self._frf['waiting'] = len(self._frf_pending)
         self._diag_dirty = True
         return pack_response(call.parsed.names, arrays, error, call.response)
 
@@ -757,17 +760,21 @@ class DynamicsNode(Node):
     # --------------------------------------------------------------------- diagnostics
 
     def on_diagnostics_timer(self) -> None:
-        """Markers (rebuilt ones at most every tick, CHANGE_PERIOD_S: building them costs
-        milliseconds, poses come at 50 Hz and more) and diagnostics when something changed.
+        """Markers (those of a new equilibrium at most every MARKERS_PERIOD_S: building them
+        costs milliseconds, poses come at 50 Hz and more; the arrow every tick) and
+        diagnostics when something changed.
         The state is read under the lock; the messages are built and published outside it,
         so the pose and wrench thread waits for neither."""
+        now = time.monotonic()
         with self._lock:
             arrow = self.predictor.prediction().displacement_m * self._flat['node.marker_scale']
-            rebuilt = self._markers_stale or self._markers is None
+            rebuilt = self._markers is None or (
+                self._markers_stale and now - self._markers_built >= MARKERS_PERIOD_S)
             markers_due = rebuilt or not np.array_equal(arrow, self._markers_arrow)
-            self._markers_stale = False
+            if rebuilt:
+                self._markers_stale = False
+                self._markers_built = now
             state = (self.predictor.settings, self.predictor.eq)
-            now = time.monotonic()
             statuses = None
             if (self._diag_dirty
                     or now - self._diag_last >= self._flat['node.diagnostics_period_s']):
@@ -1010,8 +1017,8 @@ def main(args=None):
         lean.spin()
     except (Stopped, KeyboardInterrupt, ExternalShutdownException):
         pass
-    except NUMERIC_ERRORS as exc:
-        failed.append(exc)
+    except Exception as exc:  # noqa: BLE001 - one line, status 1 (a signal that lands inside
+        failed.append(exc)    # a pybind11 call comes out as its RuntimeError: a stop, below)
     finally:
         if failed and not stopper.signalled:
             print(f'dynamics_node: error: {first_line(failed[0])}', file=sys.stderr)

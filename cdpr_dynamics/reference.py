@@ -17,9 +17,9 @@ import numpy as np
 from cdpr_dynamics import models
 from cdpr_dynamics.closed_forms import Scene, SelectionError, largest_phase
 from cdpr_dynamics.dynamics import (DENSE_EIGEN_DOFS, Damping, PlatformSystem, frequency_response,
-                                    natural_frequencies, platform_system)
+                                    platform_system)
 from cdpr_dynamics.estimates import MISSED, Estimator, band_damping, percent
-from cdpr_dynamics.models.dsm import natural_frequencies_dsm
+from cdpr_dynamics.modes import natural_frequencies
 from cdpr_dynamics.statics import equilibrium_for
 
 SAG_NEGLIGIBLE = 0.1          # sag negligible for the yardstick below this fraction of tolerance
@@ -95,9 +95,9 @@ def solve(settings, eq, method: str, n: int, frequency_grid_hz, damping: Damping
     response = frequency_response(system, frequency_grid_hz, settings.frf_force_n,
                                   damping=damping).response[:, :3]
     if system.assembly.blocks is None:
-        freqs = natural_frequencies_dsm(system, None, f_max_hz)
+        freqs = natural_frequencies(system, 0, f_max_hz)
         if freqs.size < at_least + 1:
-            freqs = natural_frequencies_dsm(system, at_least + 1)
+            freqs = natural_frequencies(system, at_least + 1)
     else:
         # the sparse eigen-solver of natural_frequencies takes at most dofs - 1 modes
         most = system.dofs if system.dofs <= DENSE_EIGEN_DOFS else system.dofs - 1

@@ -16,6 +16,7 @@ A point-mass platform (all ``b_i = 0``) has 3 DOFs (translation); a rigid platfo
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import math
@@ -83,6 +84,16 @@ def quaternion_product(p, q) -> np.ndarray:
                      pw * qw - px * qx - py * qy - pz * qz])
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products of stacked 3-vectors (..., 3) x (..., 3): numpy's formula (bit for bit
+    the same numbers as ``np.cross``) without its argument handling, ~10x cheaper on small
+    stacks."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices ``[v]x`` of vectors ``v`` of shape (..., 3): (..., 3, 3)."""
     v = np.asarray(v, dtype=float)
@@ -109,7 +120,7 @@ class Robot:
     def n_cables(self) -> int:
         return self.anchors_m.shape[0]
 
-    @property
+    @functools.cached_property
     def point_mass(self) -> bool:
         """True when every cable meets the centroid: 3 platform DOFs instead of 6."""
         return not np.any(self.attachments_m)
@@ -118,7 +129,7 @@ class Robot:
     def platform_dofs(self) -> int:
         return 3 if self.point_mass else 6
 
-    @property
+    @functools.cached_property
     def frame_bounds_m(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned box spanned by the anchors (the frame), lower and upper corner."""
         return self.anchors_m.min(axis=0), self.anchors_m.max(axis=0)
@@ -185,7 +196,7 @@ def geometry(robot: Robot, position_m, rotation=None, *, check_frame: bool = Tru
     wt = np.zeros((robot.platform_dofs, robot.n_cables))
     wt[:3] = unit.T
     if robot.platform_dofs == 6:
-        wt[3:] = np.cross(lever, unit).T
+        wt[3:] = cross(lever, unit).T
     return Geometry(p, rot, lever, chord, length, unit, wt)
 
 

@@ -79,10 +79,14 @@ class SlackHistory:
 
     def slack_intervals(self, cable: int) -> list[tuple[float, float]]:
         """[(start, end)] times (s) during which ``cable`` is slack (end inclusive)."""
-        flags = self.slack[:, cable].astype(int)
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], flags, [0]])))
-        return [(float(self.t_s[s]), float(self.t_s[e - 1]))
-                for s, e in zip(edges[::2], edges[1::2])]
+        return intervals(self.t_s, self.slack[:, cable])
+
+
+def intervals(t_s, flags) -> list[tuple[float, float]]:
+    """[(start, end)] times (s) of the runs of True in ``flags`` (nt,), end inclusive."""
+    flags = np.asarray(flags, dtype=bool).astype(int)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], flags, [0]])))
+    return [(float(t_s[s]), float(t_s[e - 1])) for s, e in zip(edges[::2], edges[1::2])]
 
 
 class CompressionFreeCables:

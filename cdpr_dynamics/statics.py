@@ -45,7 +45,7 @@ import numpy as np
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.models import catenary
 from cdpr_dynamics.models.base import CableSet
-from cdpr_dynamics.robot import WRENCH_AXES, Geometry, required_wrench
+from cdpr_dynamics.robot import WRENCH_AXES, Geometry, cross, required_wrench
 from cdpr_dynamics.tensions import TensionResult, TensionSolver
 
 #: Methods linearised about the sag-consistent state; the others use the chord statics.
@@ -68,7 +68,10 @@ class SagStatics:
     ``tension_n`` the platform-end tensions T_i, ``end_force_n`` (n, 3) the force of each cable
     on the platform (along its end tangent), ``state`` the catenaries, ``residual`` (ndof,) the
     wrench the cables miss (N, then N m), ``lower_bound_n`` the lower bounds used (T_min, or the
-    lifted one), ``iterations`` the SQP iterations, ``warnings`` one line each.
+    lifted one), ``iterations`` the SQP iterations, ``warnings`` one line each; ``step_qp``
+    the warm-started QP of the SQP steps, which the next pose's :func:`sag_equilibrium`
+    (``start``) reuses where the lower bounds are the same (its answers are KKT-checked: a warm
+    start only shortens the path).
     """
 
     tension_n: np.ndarray
@@ -78,6 +81,7 @@ class SagStatics:
     lower_bound_n: np.ndarray
     iterations: int
     warnings: tuple[str, ...]
+    step_qp: object = None      # the SQP's warm QP (_StepQP): reused by the next pose
 
 
 def cable_wrench(end_force_n: np.ndarray, lever_m: np.ndarray, ndof: int) -> np.ndarray:
@@ -85,14 +89,14 @@ def cable_wrench(end_force_n: np.ndarray, lever_m: np.ndarray, ndof: int) -> np.
     force = end_force_n.sum(axis=0)
     if ndof == 3:
         return force
-    return np.concatenate([force, np.cross(lever_m, end_force_n).sum(axis=0)])
+    return np.concatenate([force, cross(lever_m, end_force_n).sum(axis=0)])
 
 
 def structure_of(direction: np.ndarray, lever_m: np.ndarray, ndof: int) -> np.ndarray:
     """(ndof, n): the wrench per unit tension of forces along ``direction`` (n, 3)."""
     if ndof == 3:
         return direction.T
-    return np.concatenate([direction.T, np.cross(lever_m, direction).T])
+    return np.concatenate([direction.T, cross(lever_m, direction).T])
 
 
 def lowest_tension(cables: CableSet, which: np.ndarray, t_high_n: float,
@@ -174,7 +178,10 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
     arm = max(float(np.linalg.norm(lever, axis=1).max(initial=0.0)), 1e-3)
     tol = rtol * force_scale * np.where(np.arange(ndof) < 3, 1.0, arm)
     step_tol = OPTIMALITY_RTOL * float(t_max_n)
-    qp = _StepQP(n, ndof, lower, t_min_n, t_max_n)
+    qp = None if start is None else start.step_qp        # the previous pose's, if it fits
+    if (qp is None or qp.shape != (n, ndof, t_min_n, t_max_n)
+            or not np.array_equal(qp.lower, lower)):
+        qp = _StepQP(n, ndof, lower, t_min_n, t_max_n)
     residual = cable_wrench(-state.force_n, lever, ndof) - wrench
     rho = 0.0                       # proximal weight: grows while steps are cut, falls after
     iterations = 0
@@ -199,7 +206,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
             step = proposal.tension_n - tension
         if size <= 1.0 and np.abs(step).max() <= step_tol:
             return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
-                              tuple(warnings))
+                              tuple(warnings), qp)
         alpha = 1.0
         for _ in range(30 if size > 1.0 else FEASIBLE_HALVINGS):
             trial = np.clip(tension + alpha * step, lower, t_max_n)
@@ -232,7 +239,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
                         f'{np.abs(residual[:3]).max():.2g} N) but the SQP did not settle on the '
                         f'least-norm distribution in {iterations} iterations{cause}')
         return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
-                          tuple(warnings))
+                          tuple(warnings), qp)
     raise StaticsError(f'no sag-consistent tension distribution: the SQP did not converge in '
                        f'{iterations} iterations (residual {WRENCH_AXES[worst]} '
                        f'{residual[worst]:.3g}){cause}')
@@ -280,6 +287,7 @@ class _StepQP:
 
     def __init__(self, n, ndof, lower, t_min_n, t_max_n):
         span = t_max_n - t_min_n
+        self.lower = np.array(lower, dtype=float)
         self.b = (t_max_n - lower) / span if span > 0 else np.ones(n)
         self.a = lower - self.b * t_min_n
         self.shape = (n, ndof, t_min_n, t_max_n)

@@ -19,6 +19,21 @@ platform and 6 for a rigid one. The default weights C = I, c = 0 give the tensio
 (11): it is set up once, then only W^T and w are updated (``qp.update``) and each solve is
 warm-started from the previous solution, so a live node pays a few tens of microseconds per pose.
 
+Warm active set. Between nearby poses the set of tensions at their bounds rarely changes, and
+with that set known the QP is one linear solve. For a diagonal C = diag(h) (the default, and
+the sag statics' steps) let F be the free tensions and A the fixed ones, T_A at their bounds:
+
+    T_F = (W_F lambda - c_F) / h_F,
+    (W^T_F diag(1/h_F) W_F) lambda = w - W^T_A T_A + W^T_F (c_F / h_F)        (ndof x ndof),
+
+and the bound multipliers mu = h T + c - W lambda (mu_i >= 0 at a lower bound, <= 0 at an upper
+one, 0 where free). When T_F lies in the box and the multipliers have their signs, T meets the
+KKT conditions of this convex QP: it is the optimum (exactly, not to a solver tolerance).
+Otherwise the set is updated as the primal-dual active-set method does (lower where
+T_i - mu_i < T_min, upper where T_i - mu_i > T_max) for at most ``ACTIVE_SET_ROUNDS`` rounds,
+then proxsuite decides. The set starts from the previous answer (the tensions at a bound); a
+solver without a previous answer, or with ``warm_start=False``, goes straight to proxsuite.
+
 Infeasibility is never taken on the solver's word alone. Before the QP a cheap necessary test
 compares each wrench component with the range the box can produce (below); after it the returned
 T is checked against (11) and (12) within ``tolerance_n``. proxsuite certifies a grossly
@@ -44,10 +59,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import proxsuite
+from scipy.linalg.lapack import dposv as _posv
 
 from cdpr_dynamics.robot import WRENCH_AXES
 
 _proxqp = proxsuite.proxqp
+
+#: primal-dual active-set rounds of the warm path before proxsuite decides (module docstring)
+ACTIVE_SET_ROUNDS = 3
 
 #: proxsuite outcomes as TensionResult.status strings.
 _STATUS = {
@@ -70,7 +89,8 @@ class TensionResult:
     ``'not_finite'`` (or a rarer proxsuite outcome: ``'dual_infeasible'``, ``'not_run'``).
     ``feasible``: status ``'solved'`` and bounds and ``W^T T = w`` hold within ``tolerance_n``.
     ``residual_n``: max |W^T T - w| (N, N m). ``iterations``: proxsuite iterations of the main QP
-    (0 when it was not run). ``reason``: one readable line when not feasible, else ''.
+    (0 when it was not run, e.g. answered by the warm active set). ``reason``: one readable line
+    when not feasible, else ''.
     ``solve_time_s``: wall time of :meth:`TensionSolver.solve`. ``tolerance_n``: the tolerance
     (N, N m) that ``feasible`` was judged with.
     """
@@ -174,10 +194,69 @@ class TensionSolver:
         self._mid = np.full(self.n_cables, 0.5 * (self.t_min_n + self.t_max_n))
         self._half = np.full(self.n_cables, 0.5 * (self.t_max_n - self.t_min_n))
         self._qp = None  # set up on the first solve, dropped after a failure
+        off = self.hessian - np.diag(np.diag(self.hessian))
+        self._h = np.diag(self.hessian).copy() if not off.any() and np.all(
+            np.diag(self.hessian) > 0) else None     # the warm active set needs C = diag(h > 0)
+        self._kkt_tol = 1e-9 * scale                   # KKT sign and box slack of round-off
+        self._unit = self._h is not None and bool(np.all(self._h == 1.0) and not self.linear.any())
+        self._active = None   # int8 (n,): -1 at T_min, +1 at T_max, 0 free; None: no answer
+        self._terms = {}      # per active set: what _active_set needs of it
 
     def reset(self) -> None:
         """Forget the previous solution: the next solve starts cold."""
         self._qp = None
+        self._active = None
+
+    def _remember(self, tension: np.ndarray) -> None:
+        """The active set of an answer: the tensions within ``tolerance_n`` of a bound."""
+        if self.warm_start and self._h is not None:
+            self._active = (np.where(tension >= self.t_max_n - self.tolerance_n, 1, 0)
+                            - (tension <= self.t_min_n + self.tolerance_n)).astype(np.int8)
+
+    def _active_set(self, wt: np.ndarray, w: np.ndarray, start: float) -> TensionResult | None:
+        """The warm active-set answer (module docstring), or None where it does not settle."""
+        h, c, tol = self._h, self.linear, self._kkt_tol
+        active = self._active
+        for _ in range(ACTIVE_SET_ROUNDS):
+            sign, inv_free, base = self._set_terms(active)
+            scaled = wt * inv_free                                   # W^T_F diag(1/h_F)
+            _, lam, info = _posv(scaled @ wt.T, w - wt @ base)     # Cholesky: SPD when
+            if info != 0:                                          # W^T_F has full rank,
+                return None                                        # else proxsuite decides
+            pull = lam @ wt                                              # W lambda
+            tension = pull * inv_free + base
+            mu = (tension if self._unit else h * tension + c) - pull     # 0 where free
+            # free tensions in the box (fixed ones sit on their bounds), multipliers signed
+            outside = np.abs(tension - self._mid).max() - self._half[0]
+            if outside <= tol and (sign * mu).max() <= tol:
+                if outside > 0.0:
+                    tension = np.minimum(np.maximum(tension, self.t_min_n), self.t_max_n)
+                residual = float(np.abs(wt @ tension - w).max())
+                if not residual <= self.tolerance_n:
+                    return None
+                self._active = active
+                return TensionResult(tension, 'solved', True, residual, 0, '',
+                                     time.perf_counter() - start, self.tolerance_n)
+            trial = tension - mu
+            active = (np.where(trial > self.t_max_n, 1, 0)
+                      - (trial < self.t_min_n)).astype(np.int8)
+        return None
+
+    def _set_terms(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sign (n,) float: -1 lower, +1 upper, 0 free; 1/h on the free tensions, 0 on the
+        fixed; T_A on the fixed and -c/h on the free) of an active set, cached per set."""
+        key = active.tobytes()
+        terms = self._terms.get(key)
+        if terms is None:
+            free = active == 0
+            sign = active.astype(float)
+            inv_free = np.where(free, 1.0 / self._h, 0.0)
+            base = np.where(free, -self.linear / self._h,
+                            np.where(active > 0, self.t_max_n, self.t_min_n))
+            if len(self._terms) > 64:
+                self._terms.clear()
+            terms = self._terms[key] = (sign, inv_free, base)
+        return terms
 
     def _new_qp(self, structure_matrix: np.ndarray, wrench: np.ndarray, max_iter: int):
         qp = _proxqp.dense.QP(self.n_cables, self.ndof, 0, True)
@@ -200,12 +279,17 @@ class TensionSolver:
         if wt.shape != (self.ndof, self.n_cables) or w.shape != (self.ndof,):
             raise ValueError(f'expected structure matrix ({self.ndof}, {self.n_cables}) and '
                              f'wrench ({self.ndof},), got {wt.shape} and {w.shape}')
+        if self._active is not None:   # warm: the previous answer's active set (a KKT point
+            with np.errstate(invalid='ignore', over='ignore'):   # is feasible: no test needed
+                result = self._active_set(wt, w, start)   # before it; NaN fails its checks)
+            if result is not None:
+                return result
         # Necessary condition, per wrench component: reachable range of W^T T over the box.
         # NaN or inf anywhere in W^T or w makes the test fail too, so it is the finite check.
         with np.errstate(invalid='ignore'):
             excess = np.abs(w - wt @ self._mid) - np.abs(wt) @ self._half
         if not excess.max() <= self.tolerance_n:
-            self._qp = None
+            self.reset()
             if not (np.isfinite(wt).all() and np.isfinite(w).all()):
                 what = 'structure matrix' if not np.isfinite(wt).all() else 'wrench'
                 return TensionResult(np.full(self.n_cables, np.nan), 'not_finite', False,
@@ -265,10 +349,12 @@ class TensionSolver:
                 if self.warm_start:
                     qp.settings.initial_guess = _proxqp.WARM_START_WITH_PREVIOUS_RESULT
                     self._qp = qp
+                    self._remember(tension)
                 return TensionResult(tension, 'solved', True, residual, iterations, '',
                                      time.perf_counter() - start, self.tolerance_n)
             status = 'infeasible'  # 'solved' by proxsuite but outside Eqs. 11-12
         self._qp = None  # the next solve starts cold: a failed iterate is a poor warm start
+        self._active = None
         return TensionResult(x, status, False, np.nan, iterations, status,
                              time.perf_counter() - start, self.tolerance_n)
 

@@ -47,16 +47,12 @@ def modes_job(settings, eq, method: str, elements: int, max_steps: int) -> dict:
     """What the node reports of its model's modes: every natural frequency up to
     ``frf.f_max_hz`` (at least 12), the platform ones, and the time-step warnings."""
     from cdpr_dynamics.analysis import build_system, system_modes
-    from cdpr_dynamics.dynamics import natural_frequencies
     from cdpr_dynamics.live import time_step_warnings
-    import numpy as np
     system = build_system(settings, eq, method, elements)
     found = system_modes(settings, system)
-    freqs = natural_frequencies(system, 12) if found is None else found.frequency_hz
-    positive = np.asarray(freqs)[np.asarray(freqs) > 0]
+    positive = found.frequency_hz[found.frequency_hz > 0]
     lowest = float(positive[0]) if positive.size else float('nan')
-    return {'frequency_hz': np.asarray(freqs),
-            'platform_hz': np.zeros(0) if found is None else found.platform_hz,
+    return {'frequency_hz': found.frequency_hz, 'platform_hz': found.platform_hz,
             'step_warnings': time_step_warnings(settings, system, lowest, max_steps)}
 
 

@@ -25,5 +25,8 @@ def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
     assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'catenary_exact',
                                                'fem_sag_n16', 'fem_sag_n16_chord_statics'}
     assert result['node_compute_per_wrench']['p99_ms'] > 0
+    modes = result['modes'][0]         # quick mode: fem 16, counted and by the eigensolver
+    assert modes['modes'] == 27 and modes['platform_modes'] == 3
+    assert modes['counted']['p50_s'] > 0 and modes['eigensolver']['p50_s'] > 0
     replay = {r['method']: r for r in result['replay']}
     assert set(replay) == {'spring', 'fem'} and all(r['inputs'] > 0 for r in replay.values())

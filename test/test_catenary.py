@@ -14,7 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from cdpr_dynamics import models
 from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import natural_frequencies, platform_system
+from cdpr_dynamics.dynamics import platform_system
+from cdpr_dynamics.modes import natural_frequencies
 from cdpr_dynamics.models import catenary
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.robot import geometry

@@ -13,9 +13,10 @@ from cdpr_dynamics import models
 from cdpr_dynamics.analysis import equilibrium
 from cdpr_dynamics.config import load_settings
 from cdpr_dynamics.dynamics import (DENSE_EIGEN_DOFS, Damping, _assemble, DynamicsError, Newmark,
-                                    frequency_response, natural_frequencies, platform_system,
+                                    frequency_response, platform_system,
                                     rayleigh_from_modal_ratio, tension_change, time_history)
 from cdpr_dynamics.models.base import CableSet
+from cdpr_dynamics.modes import natural_frequencies
 from cdpr_dynamics.robot import Robot, geometry, required_wrench
 
 EA = 2.01e10 * 5.0265e-5

@@ -8,8 +8,9 @@ import pytest
 
 from cdpr_dynamics.analysis import build_system, equilibrium
 from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import DynamicsError, natural_frequencies, platform_frequencies
-from cdpr_dynamics.modes import CABLE_SHARE, PLATFORM_SHARE, classify, modes
+from cdpr_dynamics.dynamics import DynamicsError, platform_frequencies
+from cdpr_dynamics.modes import (CABLE_SHARE, PLATFORM_SHARE, classify, modes,
+                                 natural_frequencies)
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = load_settings(REPO / 'config' / 'paper_cdpr.yaml')
@@ -90,7 +91,8 @@ def test_hint_changes_cost_not_modes():
     assert cold.kind == warm.kind
 
 
-def test_dsm_is_refused_with_a_reason():
+def test_dsm_has_no_mode_shapes():
     system = build_system(PAPER, equilibrium(PAPER), 'dsm')
+    assert modes(system).shapes is None                        # classified by counting
     with pytest.raises(DynamicsError, match='no finite matrices'):
-        modes(system)
+        modes(system, shapes=True)

@@ -17,7 +17,8 @@ IMPORT_KEYS = {
     'service_msgs': 'service_msgs', 'ament_index_python': 'ament_index_python',
     'rosidl_parser': 'rosidl_parser', 'visualization_msgs': 'visualization_msgs',
     'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
-    'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
+    'matplotlib': 'python3-matplotlib', 'mpl_toolkits': 'python3-matplotlib',   # its 3D axes
+    'tqdm': 'python3-tqdm',
     'mcap': 'mcap-ros2-support',        # no key of its own: a pip dependency of mcap-ros2-support
     'mcap_ros2': 'mcap-ros2-support', 'qpsolvers': 'python3-qpsolvers-pip',
     'proxsuite': 'proxsuite', 'launch': 'launch', 'launch_ros': 'launch_ros',

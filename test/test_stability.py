@@ -19,14 +19,13 @@ from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, build_system, eq
                                     frf_arrays, safe)
 from cdpr_dynamics.cli.analyze import analyze_method
 from cdpr_dynamics.config import load_settings, read_params_file, settings_from_params
-from cdpr_dynamics.dynamics import (Damping, DynamicsError, Newmark, frequency_response,
-                                    natural_frequencies)
+from cdpr_dynamics.dynamics import Damping, DynamicsError, Newmark, frequency_response
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.robot import geometry
 from cdpr_dynamics.statics import EXIST_MARGIN, lowest_tension
 from cdpr_dynamics.tensions import TensionResult
 from cdpr_dynamics.models.catenary import sag_parameter
-from cdpr_dynamics.models.dsm import natural_frequencies_dsm
+from cdpr_dynamics.modes import natural_frequencies
 from cdpr_dynamics.reference import measure_error, reference_solution
 from cdpr_dynamics.selection import accuracy_warnings, choose_model
 from conftest import analyze, write_config
@@ -222,7 +221,7 @@ def test_undamped_frf_exactly_at_a_resonance_is_flagged():
     assert not any(np.isnan(v).any() for v in arrays.values() if not isinstance(v, str))
     # dsm (Wittrick-Williams frequencies, 1e-9 Hz): huge but finite, never NaN or a raise
     dsm = build_system(paper, eq, 'dsm', 0)
-    f = natural_frequencies_dsm(dsm, 25)
+    f = natural_frequencies(dsm, 25)
     r = frequency_response(dsm, f[[0, 24]], [0.0, 0.0, 1500.0])
     assert not np.isnan(r.amplitude_m).any() and np.all(r.amplitude_m[:, 2] > 1e3)
     # auto judges an undamped FRF by the frequencies alone: no inf in its estimate

@@ -33,7 +33,7 @@ from cdpr_dynamics.analysis import (AnalysisError, build_system, equilibrium,
                                     equilibrium_summary, model_warnings)
 from cdpr_dynamics.cli.analyze import analyze_method
 from cdpr_dynamics.config import read_params_file, settings_from_params
-from cdpr_dynamics.dynamics import natural_frequencies
+from cdpr_dynamics.modes import natural_frequencies
 from cdpr_dynamics.models import catenary, fem_sag
 from cdpr_dynamics.robot import geometry, required_wrench, skew
 

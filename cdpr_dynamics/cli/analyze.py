@@ -3,10 +3,12 @@
     cdpr_analyze [--config PATH] [--method M [M ...]] [--elements N] [--json PATH]
                  [--plot-dir DIR] [--f-min HZ] [--f-max HZ] [--n-points N]
                  [--excitation-hz F [F ...]] [--duration S] [--slack-aware]
+                 [--plot-direction {x,y,z,rx,ry,rz}]
 
 Writes the JSON of SPEC section 6 (for the first method; every method under ``methods``) and
-PNG plots of the FRF (one line per method) and of the time histories. Errors end with one line
-naming the cause and exit status 1.
+PNG plots (:mod:`cdpr_dynamics.figures`): the FRF along ``--plot-direction`` (one line per
+method) and the time histories of every method, the geometry and the mode shapes of the first.
+Errors end with one line naming the cause and exit status 1.
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.analysis import (DSM_MODES, AnalysisError, Equilibrium, Stopwatch,
+from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, Stopwatch,
                                     build_system, damping_for, damping_warnings, equilibrium,
                                     equilibrium_for, equilibrium_summary, frf_arrays,
                                     geometry_summary, model_warnings, point_displacement,
@@ -26,6 +28,8 @@ from cdpr_dynamics.cli import interruptible
 from cdpr_dynamics.config import METHODS, ConfigError, Settings, load_settings
 from cdpr_dynamics.dynamics import tension_change, time_history
 from cdpr_dynamics.models.catenary import sag_parameter
+from cdpr_dynamics.modes import modes
+from cdpr_dynamics.robot import DOF_NAMES
 from cdpr_dynamics.selection import accuracy_warnings, choose_model
 from cdpr_dynamics.slack import peak_displacement, platform_only_method, slack_time_history
 
@@ -58,15 +62,13 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
     if not assembly.valid:
         raise AnalysisError(f'method {assembly.method} fails for this scene: '
                             + '; '.join(assembly.warnings))
-    with watch('frf'):
-        arrays = safe(frf_arrays, settings, system)
+    with watch('modes'):        # natural frequencies and their classification
+        found = safe(system_modes, settings, system)
+    with watch('frf'):          # the FRF only (and the receptance)
+        arrays = safe(frf_arrays, settings, system, found)
         damping = safe(damping_for, settings, system)
         gain = safe(receptance, system, arrays['frequency_hz'], damping)
-    with watch('modes'):
-        found = safe(system_modes, settings, system)
     freqs = arrays['natural_frequencies_hz']
-    if found is None:
-        warnings.append(DSM_MODES)
     warnings += damping_warnings(damping, freqs)
     histories = []
     if assembly.blocks is not None:
@@ -89,7 +91,10 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
                                     f'{min_tension:.1f} N, below tension.min_n')
                 histories.append({'excitation_hz': float(f_exc), 't_s': th.t_s.tolist(),
                                   'u_m': u_point.tolist(), 'min_tension_n': min_tension,
-                                  'slack': bool(slack)})
+                                  'slack': bool(slack),
+                                  'force_n': np.outer(np.sin(2 * np.pi * f_exc * th.t_s),
+                                                      settings.frf_force_n).tolist(),
+                                  'lowest_tension_n': tension.min(axis=1).tolist()})
                 if slack_aware:
                     histories[-1]['slack_aware'] = _slack_aware(settings, eq, assembly.method,
                                                                 f_exc, duration_s, damping)
@@ -124,6 +129,8 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
         'frf': {'frequency_hz': arrays['frequency_hz'].tolist(),
                 'amplitude_m': amplitude.tolist(), 'phase_rad': phase.tolist(),
                 'point_m': np.asarray(settings.frf_point_m, dtype=float).tolist(),
+                'force_n': np.asarray(settings.frf_force_n, dtype=float).tolist(),
+                'moment_nm': np.asarray(settings.frf_moment_nm, dtype=float).tolist(),
                 'receptance': {'real': _finite(gain.real), 'imag': _finite(gain.imag)}},
         'time_history': histories,
         'model_choice': chosen,
@@ -172,58 +179,42 @@ def _slack_aware(settings: Settings, eq: Equilibrium, method: str, f_exc: float,
     return {'method': name, 'elements_per_cable': 1, 'u_m': th.u_m.tolist(),
             'peak_uz_m': peak_displacement(th.u_m),
             'min_tension_n': float(th.tension_n.min()),
+            'lowest_tension_n': th.tension_n.min(axis=1).tolist(),
             'slack_fraction': th.slack.mean(axis=0).tolist()}
 
 
-def _plot(documents: list[dict], plot_dir: Path) -> list[Path]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    plot_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for doc in documents:
-        f = np.asarray(doc['frf']['frequency_hz'])
-        with np.errstate(divide='ignore'):
-            ax.plot(f, np.log10(np.asarray(doc['frf']['amplitude_m'])[:, 2]),
-                    label=f"{doc['method']} ({doc['dofs']} DOFs)")
-    ax.set_xlabel('excitation frequency (Hz)')
-    ax.set_ylabel('log10 |A_z| (m)')
-    ax.set_title('Frequency response of the end-effector (Eq. 39)')
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    paths.append(plot_dir / 'frf.png')
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
-    excitations = sorted({h['excitation_hz'] for doc in documents for h in doc['time_history']})
-    if excitations:     # one panel per excitation frequency, one line per method
-        fig, axes = plt.subplots(len(excitations), 1, figsize=(7, 1.2 + 2.4 * len(excitations)),
-                                 sharex=True, squeeze=False)
-        for ax, f_exc in zip(axes[:, 0], excitations):
-            for i, doc in enumerate(documents):
-                for h in doc['time_history']:
-                    if h['excitation_hz'] != f_exc:
-                        continue
-                    colour = f'C{i}'
-                    ax.plot(h['t_s'], 1e3 * np.asarray(h['u_m'])[:, 2], color=colour,
-                            label=doc['method'] + (' (a cable goes slack)' if h['slack']
-                                                   else ''))
-                    if 'slack_aware' in h:
-                        ax.plot(h['t_s'], 1e3 * np.asarray(h['slack_aware']['u_m'])[:, 2],
-                                color=colour, ls='--',
-                                label=f"{h['slack_aware']['method']}, slack-aware")
-            ax.set_title(f'{f_exc:g} Hz harmonic load', fontsize='medium')
-            ax.set_ylabel('u_z (mm)')
-            ax.grid(True, alpha=0.3)
-            ax.legend(fontsize='small', loc='upper right')
-        axes[-1, 0].set_xlabel('time (s)')
-        fig.suptitle('Time history of the end-effector (Newmark)')
-        fig.tight_layout()
+def _plot(documents: list[dict], plot_dir: Path, settings: Settings, eq: Equilibrium,
+          direction: str = 'z', scene_name: str = '') -> list[Path]:
+    """frf.png and time_history.png of every method's document, geometry.png and modes.png of
+    the first method (:mod:`cdpr_dynamics.figures`) at the chord equilibrium ``eq``."""
+    from cdpr_dynamics import figures       # matplotlib: imported only when plotting
+    first = documents[0]
+    figures.frf_figure(documents, plot_dir / 'frf.png', direction)
+    paths = [plot_dir / 'frf.png']
+    axis = (DOF_NAMES.index(direction) if direction in ('x', 'y', 'z')
+            else int(np.argmax(np.abs(settings.frf_force_n))))
+    if figures.time_history_figure(documents, plot_dir / 'time_history.png', axis,
+                                   settings.tension_min_n):
         paths.append(plot_dir / 'time_history.png')
-        fig.savefig(paths[-1], dpi=120)
-        plt.close(fig)
+    method, elements = first['method'], first['model_choice']['elements_per_cable']
+    title = ', '.join(filter(None, (scene_name, figures.method_name(method, elements))))
+    eq = safe(equilibrium_for, settings, eq, method)
+    figures.geometry_figure(figures.scene(settings, eq), plot_dir / 'geometry.png', title)
+    paths.append(plot_dir / 'geometry.png')
+    system = safe(build_system, settings, eq, method, elements or None)
+    if system.assembly.blocks is not None:      # dsm: no mode shapes
+        found = safe(modes, system, settings.f_max_hz, shapes=True)
+        wanted = 3 if system.assembly.interior_dofs else 6
+        picked = figures.pick_modes(found.kind, found.platform_fraction, wanted, 3,
+                                    found.frequency_hz)
+        shapes = figures.mode_shapes(settings, eq, system, found, picked)
+        platform = sum(k == 'platform' for k in found.kind)
+        note = (f' ({platform} platform mode{"s" if platform != 1 else ""} below '
+                f'{settings.f_max_hz:g} Hz: the modes of the largest platform energy shown)'
+                if platform < wanted else '')
+        figures.modes_figure(shapes, settings.robot.anchors_m, plot_dir / 'modes.png',
+                             title + note)
+        paths.append(plot_dir / 'modes.png')
     return paths
 
 
@@ -234,7 +225,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help='cable model(s); the first fills the top level of the JSON')
     parser.add_argument('--elements', type=int, help='elements per cable (fem, fem_sag)')
     parser.add_argument('--json', type=Path, help='write the results to this JSON file')
-    parser.add_argument('--plot-dir', type=Path, help='write frf.png and time_history.png here')
+    parser.add_argument('--plot-dir', type=Path, help='write frf.png, time_history.png, '
+                        'geometry.png and modes.png here')
+    parser.add_argument('--plot-direction', choices=DOF_NAMES, default='z',
+                        help='the FRF plotted: translation (m/N) or rotation (rad/(N m))'),
     parser.add_argument('--f-min', type=float, help='lowest FRF frequency (Hz)')
     parser.add_argument('--f-max', type=float, help='highest FRF frequency (Hz)')
     parser.add_argument('--n-points', type=int, help='FRF frequencies')
@@ -246,14 +240,24 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def run(args: argparse.Namespace, progress=None) -> dict:
-    """Load, solve and analyse as the arguments say; returns the JSON document."""
+def settings_for(args: argparse.Namespace) -> Settings:
+    """The config of ``args.config`` with the command line's overrides; refuses bad flags."""
     settings = load_settings(args.config)
     overrides = {'f_min_hz': args.f_min, 'f_max_hz': args.f_max, 'n_points': args.n_points,
                  'elements_per_cable': args.elements}
     settings = settings.replace(**{k: v for k, v in overrides.items() if v is not None})
     if args.duration <= 0 or any(not f > 0 for f in args.excitation_hz):
         raise ConfigError('--duration and --excitation-hz must be positive')
+    direction = getattr(args, 'plot_direction', 'z')
+    if direction.startswith('r') and settings.robot.point_mass:
+        raise ConfigError(f'--plot-direction {direction} needs a 6-DOF platform: this robot\'s '
+                          'platform is a point mass (x, y, z only)')
+    return settings
+
+
+def run(args: argparse.Namespace, progress=None) -> dict:
+    """Load, solve and analyse as the arguments say; returns the JSON document."""
+    settings = settings_for(args)
     watch = Stopwatch()
     with watch('tensions'):
         eq = equilibrium(settings)
@@ -285,8 +289,14 @@ def main(argv=None) -> int:
             args.json.write_text(json.dumps(result, indent=1))
             print(f'wrote {args.json}')
         if args.plot_dir:
-            for path in _plot(result.get('methods', [result]), args.plot_dir):
+            settings = settings_for(args)
+            name = Path(args.config).stem if args.config else 'paper_cdpr'
+            for path in _plot(result.get('methods', [result]), args.plot_dir, settings,
+                              equilibrium(settings), args.plot_direction, name):
                 print(f'wrote {path}')
+    except (ConfigError, AnalysisError, ValueError) as exc:     # FigureError too
+        print(f'cdpr_analyze: error: {exc}', file=sys.stderr)
+        return 1
     except OSError as exc:
         print(f'cdpr_analyze: error: cannot write {exc.filename or ""}: {exc.strerror}',
               file=sys.stderr)

@@ -16,6 +16,7 @@ not meant to be read).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.analysis import AnalysisError, build_system, damping_for, equilibrium, \
-    new_tension_solver
+    equilibrium_for, new_tension_solver
 from cdpr_dynamics.cli import bench_node, interruptible
 from cdpr_dynamics.config import ConfigError, Settings, default_config_path, load_settings
 from cdpr_dynamics.dynamics import DynamicsError, frequency_response, time_history
@@ -32,8 +33,9 @@ from cdpr_dynamics.robot import geometry, required_wrench
 
 NODE_METHODS = (('spring', 1), ('catenary', 1), ('fem', 16), ('catenary_exact', 1),
                 ('fem_sag', 16))
-SIZES = [('spring', 1), ('fem', 1), ('fem', 4), ('fem', 16), ('fem', 64), ('catenary', 1),
-         ('catenary_exact', 1), ('fem_sag', 16), ('dsm', 1)]
+SIZES = [('spring', 1), ('fem', 1), ('fem', 4), ('fem', 16), ('fem', 64), ('fem', 256),
+         ('catenary', 1), ('catenary_exact', 1), ('fem_sag', 16), ('fem_sag', 64), ('dsm', 1)]
+MODE_SIZES = [('fem', 16), ('fem', 64), ('fem_sag', 16), ('fem_sag', 64), ('dsm', 1)]
 
 
 def timed(call, repeat: int) -> dict:
@@ -79,11 +81,66 @@ def naive_frf(system, frequency_hz, force_n, damping) -> np.ndarray:
     return out
 
 
+def settle_heap() -> None:
+    """Put the allocator where a long-running process is: glibc raises its mmap and trim
+    thresholds the first time a large block (here 8 MB) is freed, after which arrays of ~100 kB
+    (an FRF's temporaries) are reused instead of being returned to the OS and faulted in again
+    on every call (2-3x slower on this VM). Every model row is then measured in the same state,
+    whatever ran before it."""
+    block = np.ones(1 << 20)
+    del block
+
+
+def previous_system(settings: Settings, eq, system):
+    """``system`` as the FRF code before the closed forms saw it: ``fem`` by the chain
+    recursion, ``dsm`` by the complex z cot z, ``fem_sag`` by the 3x3 flexibility recursion,
+    every model through 3x3 end-stiffness blocks and the congruence (no shortcuts)."""
+    from cdpr_dynamics.dynamics import platform_system
+    from cdpr_dynamics.models import dsm, fem, fem_sag
+
+    assembly = system.assembly
+    if assembly.method == 'fem':
+        assembly = fem.build(eq.cables, assembly.elements_per_cable, reference=True)
+    elif assembly.method == 'dsm':
+        members = dataclasses.replace(assembly.end_stiffness, wave=dsm.z_cot_z_reference)
+        assembly = dataclasses.replace(assembly, end_stiffness=members)
+    elif assembly.method == 'fem_sag':
+        cables = equilibrium_for(settings, eq, 'fem_sag').cables
+        elements = fem_sag.sag_chains(cables, assembly.elements_per_cable)[1]
+        assembly = dataclasses.replace(assembly, end_stiffness=lambda lam: fem_sag._series_3d(
+            *elements, np.asarray(lam)).astype(complex))
+    assembly = dataclasses.replace(assembly, decoupled=None, constant_stiffness=None)
+    return platform_system(settings.robot, system.geometry, assembly)
+
+
+def previous_frequency_response(system, frequency_hz, force_n, damping) -> np.ndarray:
+    """The FRF algorithm before the closed forms: an SVD per frequency for the singular test
+    against the static stiffness recomputed on every call, then a batched LAPACK solve."""
+    f = np.asarray(frequency_hz, dtype=float)
+    z = system.dynamic_stiffness(2.0 * np.pi * f, damping)
+    load = np.zeros(system.platform_dofs)
+    load[:3] = force_n
+    sigma = np.linalg.svd(z, compute_uv=False)
+    scale = np.maximum(sigma[:, 0], np.abs(system.dynamic_stiffness(np.zeros(1))[0].real).max()
+                       + (2 * np.pi * f) ** 2 * np.abs(system.platform_mass).max())
+    ok = sigma[:, -1] > 1e-12 * scale
+    response = np.full((f.size, system.platform_dofs), np.inf + 0j)
+    response[ok] = np.linalg.solve(z[ok], np.broadcast_to(load, (ok.sum(), load.size))
+                                   [..., None])[..., 0]
+    return response
+
+
 def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
+    """Per method and size: build, the 391-point FRF, a Newmark time history; for the FRF the
+    previous code (:func:`previous_system`, :func:`previous_frequency_response`) and, for fem
+    16 and 64, the naive dense solve, each in the same run with the largest difference."""
+    settle_heap()
     eq = equilibrium(settings)
     freqs = settings.frequencies_hz
     rows = []
     for method, n in SIZES:
+        if quick and n > 64:
+            continue
         try:
             system = build_system(settings, eq, method, n)
         except (AnalysisError, DynamicsError, ValueError) as exc:
@@ -98,6 +155,15 @@ def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
                'build': timed(lambda: build_system(settings, eq, method, n), repeat),
                'frf_391': timed(lambda: frequency_response(system, freqs, settings.frf_force_n,
                                                            damping=damping), repeat)}
+        fast = frequency_response(system, freqs, settings.frf_force_n,
+                                  damping=damping).response[:, :3]
+        old = previous_system(settings, eq, system)
+        row['previous_frf_391'] = timed(lambda: previous_frequency_response(
+            old, freqs, settings.frf_force_n, damping), max(3, repeat // 3))
+        row['previous_over_new'] = row['previous_frf_391']['p50_s'] / row['frf_391']['p50_s']
+        before = previous_frequency_response(old, freqs, settings.frf_force_n, damping)[:, :3]
+        row['previous_max_relative_difference'] = float(
+            np.abs(before - fast).max() / np.abs(before).max())
         if system.assembly.blocks is not None:
             steps = 100 if quick else 1000
             row[f'time_history_{steps}_steps'] = timed(
@@ -105,8 +171,6 @@ def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
                                      damping, settings.dt_s, settings.newmark_alpha,
                                      settings.newmark_beta), max(1, repeat // 10))
             if method == 'fem' and n in ((16,) if quick else (16, 64)):
-                fast = frequency_response(system, freqs, settings.frf_force_n,
-                                          damping=damping).response[:, :3]
                 start = time.perf_counter()
                 naive = naive_frf(system, freqs, settings.frf_force_n, damping)
                 row['naive_dense_frf_391_s'] = time.perf_counter() - start
@@ -114,6 +178,29 @@ def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
                                                / row['frf_391']['p50_s'])
                 row['naive_max_relative_difference'] = float(
                     np.abs(naive - fast).max() / np.abs(naive).max())
+        rows.append(row)
+    return rows
+
+
+def bench_modes(settings: Settings, repeat: int, quick: bool) -> list[dict]:
+    """Every mode below ``frf.f_max_hz`` (at least 12), classified: by Wittrick-Williams
+    counting (:func:`cdpr_dynamics.modes.modes`, the default) against the dense / Lanczos
+    eigensolver with mode shapes (``shapes=True``, the previous code), in the same run."""
+    from cdpr_dynamics.modes import modes
+    eq = equilibrium(settings)
+    rows = []
+    for method, n in MODE_SIZES[:1] if quick else MODE_SIZES:
+        system = build_system(settings, eq, method, n)
+        found = modes(system, settings.f_max_hz)
+        row = {'method': method, 'elements_per_cable': n, 'dofs': system.dofs,
+               'modes': int(found.frequency_hz.size),
+               'platform_modes': int(found.platform_hz.size),
+               'counted': timed(lambda: modes(system, settings.f_max_hz), max(2, repeat // 3))}
+        if system.assembly.blocks is not None:
+            row['eigensolver'] = timed(lambda: modes(system, settings.f_max_hz, shapes=True),
+                                       max(1, repeat // 10))
+            row['counted_over_eigensolver'] = row['counted']['p50_s'] / \
+                row['eigensolver']['p50_s']
         rows.append(row)
     return rows
 
@@ -151,6 +238,7 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
     repeat = 3 if quick else 30
     result = {'quick': quick, 'qp': bench_qp(settings, repeat),
               'models': bench_models(settings, repeat, quick),
+              'modes': bench_modes(settings, repeat, quick),
               'node_compute_per_wrench': bench_node.compute_per_wrench(
                   settings, 2000 if quick else 20000),
               'node_pose_update': bench_node.pose_updates(
@@ -183,8 +271,18 @@ def summary(result: dict) -> str:
                 f"{row['frf_391']['p50_s'] * ms:7.3f} ms")
         if th:
             text += f"  time history {th['p50_s'] * ms:8.1f} ms"
-        if 'naive_over_condensed' in row:
-            text += f"  (naive dense x{row['naive_over_condensed']:.0f})"
+        if 'previous_over_new' in row:
+            text += f"  (previous code x{row['previous_over_new']:.1f}"
+            text += (f", naive dense x{row['naive_over_condensed']:.0f})"
+                     if 'naive_over_condensed' in row else ')')
+        lines.append(text)
+    for row in result['modes']:
+        text = (f"modes below f_max {row['method']:>8} n={row['elements_per_cable']:<3} "
+                f"{row['modes']} ({row['platform_modes']} platform): counted "
+                f"{row['counted']['p50_s'] * ms:7.2f} ms")
+        if 'eigensolver' in row:
+            text += (f", eigensolver with shapes {row['eigensolver']['p50_s'] * ms:7.1f} ms "
+                     f"(x{row['counted_over_eigensolver']:.3f})")
         lines.append(text)
     wrench = result['node_compute_per_wrench']
     lines.append(f"node compute per wrench ({wrench['method']}, {wrench['dofs']} DOFs) p50/p99 "

@@ -80,8 +80,8 @@ def chord_statics_pose_updates(settings, method: str = 'fem_sag', elements: int 
     cables."""
     from cdpr_dynamics import models
     from cdpr_dynamics.analysis import damping_for, equilibrium, new_tension_solver
-    from cdpr_dynamics.dynamics import Newmark, platform_system
-    from cdpr_dynamics.live import DENSE_NEWMARK_DOFS
+    from cdpr_dynamics.dynamics import platform_system
+    from cdpr_dynamics.live import newmark_for
 
     solver = new_tension_solver(settings)
     total = []
@@ -90,9 +90,7 @@ def chord_statics_pose_updates(settings, method: str = 'fem_sag', elements: int 
         eq = equilibrium(settings, _circle(settings, k, n), None, solver)
         system = platform_system(settings.robot, eq.geometry,
                                  models.build(method, eq.cables, elements))
-        stiffness, mass = system.matrices(dense=system.dofs <= DENSE_NEWMARK_DOFS)
-        Newmark(stiffness, mass, damping_for(settings, system), settings.dt_s,
-                settings.newmark_alpha, settings.newmark_beta)
+        newmark_for(system, damping_for(settings, system), settings)    # as the live path
         total.append(time.perf_counter() - start)
     result = _percentiles(total[10:])
     result['dofs'] = system.dofs

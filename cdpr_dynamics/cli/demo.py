@@ -1,22 +1,41 @@
 """``cdpr_demo``: the live node on the paper's robot beside a scripted controller.
 
-    cdpr_demo [--config PATH] [--duration S] [--output PNG] [--record MCAP | --no-record]
+    cdpr_demo [--config PATH] [--duration S] [--amplitude-n N] [--excitation-hz F]
+              [--output PNG] [--record MCAP | --no-record] [--json PATH]
 
-Starts ``dynamics_node`` as a child process (``--ros-args --params-file`` the config), then
-runs a scripted controller as a second process: a slow circle of the end-effector (poses at
-50 Hz) and a harmonic wrench (1 kHz; by default 1500 N along z at 5 Hz, the paper's
-time-history load), stamped with the wall clock. This process collects the predicted
-displacements and cable tensions, calls ``frequency_response`` (the configured model, and
-``method=spring`` as an override), and writes a PNG: wrench and predicted displacement over
-time, cable tensions along the path, and the FRF log10|A_z|. All traffic (inputs, outputs,
-diagnostics, service events) is recorded to an MCAP file beside the PNG. Without ROS_DOMAIN_ID
-it takes a free domain of its own; discovery stays on localhost unless
-ROS_AUTOMATIC_DISCOVERY_RANGE says otherwise. Failures end with one line and exit status 1.
+Starts ``dynamics_node`` as a child process (``--ros-args --params-file`` the config) and waits
+until it is up: its latched ``cable_tensions`` and ``/diagnostics`` received, its subscriptions
+to ``pose`` and ``wrench`` in the graph, its ``predicted_displacement`` and ``predicted_pose``
+matched by this process's subscriptions. Then it runs a scripted controller as a second
+process: the controller waits until its publishers see the node's subscriptions (and the
+recorder's), and only then takes its first stamp ``t0`` and starts: a slow circle of the
+end-effector (poses at 50 Hz) and a harmonic wrench (1 kHz), ``W(t) = W0 sin(2 pi f t)`` with
+``W0`` the config's ``frf.force_n`` and ``frf.moment_nm`` (the moment only for a rigid
+platform), scaled by ``--amplitude-n`` to a force of that magnitude (N, same direction).
+Stamps are ``t0 + k / rate`` (wall clock, integer nanoseconds).
+
+This process counts the wrenches published and the predictions received (matched by stamp),
+waits until the last prediction arrived (or the node is idle), reads the node's pose and
+wrench counts from ``/diagnostics``, estimates the cable tensions under the load
+(``cable_tensions`` plus :func:`~cdpr_dynamics.dynamics.tension_change` of the predicted
+platform motion) and says whether the load slackens a cable, calls ``frequency_response`` (per
+unit force along the load, the configured model and ``method=spring``) and writes a PNG: load
+and predicted displacement over time, cable tensions with the lowest one, and the FRF |H| (m/N,
+log-log) with the platform modes marked. All traffic (inputs, outputs, diagnostics, markers,
+service events) is recorded to an MCAP file beside the PNG. Without ROS_DOMAIN_ID it takes a
+free domain of its own; discovery stays on localhost unless ROS_AUTOMATIC_DISCOVERY_RANGE says
+otherwise. Failures end with one line and a non-zero exit status.
 """
 from __future__ import annotations
 
 import argparse
+import difflib
+import json
+import math
 import os
+import queue
+import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -27,17 +46,28 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.cli import interruptible
-from cdpr_dynamics.config import ConfigError, default_config_path, load_settings
+from cdpr_dynamics.cli.demo_figure import plot
+from cdpr_dynamics.cli.demo_plan import (
+    controller_main, DemoError, Load, read_config, stamps_ns, Trajectory)
+from cdpr_dynamics.cli.demo_results import (
+    along, input_sentence, Received, status_count, tension_estimate, TensionEstimate)
+from cdpr_dynamics.config import default_config_path
 
-DEMO_TOPICS = ['pose', 'wrench', 'predicted_displacement', 'cable_tensions', '/diagnostics',
-               'frequency_response/_service_event']
+PROG = 'cdpr_demo'
+DEMO_TOPICS = ['pose', 'wrench', 'predicted_displacement', 'predicted_pose', 'cable_tensions',
+               '/diagnostics', 'cdpr_markers', 'frequency_response/_service_event']
+#: depth of this process's subscriptions to the node's predictions (reliable): a 10 s backlog
+#: at 1 kHz, so a busy moment here loses nothing that reached this process
+PREDICTION_DEPTH = 10000
+#: depth of the recorder's subscriptions (raw, taken in batches)
+RECORD_DEPTH = 5000
+#: the recorder's advice for an existing file, in cdpr_record's flags (see _own_flags)
+RECORDER_ADVICE = 'use --force to replace it'
+#: how often the Listener takes what arrived (s)
+POLL_S = 0.02
 
 
-class DemoError(RuntimeError):
-    """A demo that cannot go on; the message is one line."""
-
-
-def _environment(args):
+def _environment():
     """Domain, discovery range and log folder: the user's, or isolated ones."""
     from cdpr_dynamics.node_process import ament_prefix, reserve_domain_id
     reservation = None
@@ -56,106 +86,133 @@ def _environment(args):
     return env, reservation
 
 
-class Trajectory:
-    """The scripted controller's plan: a circle through the start point, a harmonic force."""
-
-    def __init__(self, settings, args):
-        self.centre = settings.initial_position_m
-        self.args = args
-
-    def position(self, t: float) -> np.ndarray:
-        omega = 2 * np.pi / self.args.duration
-        r = self.args.radius
-        return self.centre + r * np.array([np.cos(omega * t) - 1.0, np.sin(omega * t), 0.0])
-
-    def force(self, t: float) -> np.ndarray:
-        return np.array([0.0, 0.0, self.args.amplitude_n *
-                         np.sin(2 * np.pi * self.args.excitation_hz * t)])
+# ------------------------------------------------------------------------------ the plan
 
 
-def controller_main(args) -> int:
-    """The controller process: poses and wrenches paced by the clock from wall time ``t0``.
+class Controller:
+    """The controller process, its stdout read line by line in a thread."""
 
-    Prints one JSON line with what it sent. Stamps are ``t0 + k / rate`` (wall clock).
-    """
-    import json
+    def __init__(self, command, env):
+        self.proc = subprocess.Popen(command, env=env, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        self.lines: queue.Queue = queue.Queue()
+        self.stderr: list[str] = []
+        self._threads = [
+            threading.Thread(target=self._pump, args=(self.proc.stdout, self.lines.put),
+                             daemon=True),
+            threading.Thread(target=self._pump, args=(self.proc.stderr, self.stderr.append),
+                             daemon=True)]
+        for thread in self._threads:
+            thread.start()
 
-    import rclpy
-    from geometry_msgs.msg import PoseStamped, WrenchStamped
-    from rclpy.node import Node
-    from rclpy.qos import qos_profile_sensor_data
+    @staticmethod
+    def _pump(stream, put):
+        for line in stream:
+            put(line.rstrip('\n'))
 
-    from msg_adapters.pose import pose_message
-    from msg_adapters.validation import s_to_stamp
-    from msg_adapters.wrench import wrench_message
+    def failure(self) -> str:
+        lines = [line for line in self.stderr if line.strip()]
+        return lines[-1] if lines else f'exit status {self.proc.returncode}'
 
-    settings = load_settings(args.config)
-    plan = Trajectory(settings, args)
-    frame = settings.robot.frame_id
-    rclpy.init()
-    node = Node('cdpr_demo_controller')
-    pose_pub = node.create_publisher(PoseStamped, 'pose', qos_profile_sensor_data)
-    wrench_pub = node.create_publisher(WrenchStamped, 'wrench', qos_profile_sensor_data)
-    deadline = time.monotonic() + args.timeout
-    while (pose_pub.get_subscription_count() == 0 or wrench_pub.get_subscription_count() == 0):
-        if time.monotonic() > deadline:
-            print('controller: dynamics_node not subscribed to pose and wrench', file=sys.stderr)
-            return 1
-        rclpy.spin_once(node, timeout_sec=0.05)
-    dw, dp = 1.0 / args.wrench_rate, 1.0 / args.pose_rate
-    n_w = int(round(args.duration * args.wrench_rate))
-    n_p = int(round(args.duration * args.pose_rate))
-    sent_w = sent_p = 0
-    late = []
-    while time.time() < args.t0:
-        time.sleep(0.001)
-    while sent_w < n_w:
-        now = time.time() - args.t0
-        while sent_p < n_p and sent_p * dp <= now:
-            t = sent_p * dp
-            pose_pub.publish(pose_message(plan.position(t), frame_id=frame,
-                                          stamp=s_to_stamp(args.t0 + t)))
-            sent_p += 1
-        while sent_w < n_w and sent_w * dw <= now:
-            t = sent_w * dw
-            wrench_pub.publish(wrench_message(plan.force(t), frame_id=frame,
-                                              stamp=s_to_stamp(args.t0 + t)))
-            late.append(time.time() - args.t0 - t)
-            sent_w += 1
-        time.sleep(0.0002)
-    node.destroy_node()
-    rclpy.try_shutdown()
-    print(json.dumps({'wrenches': sent_w, 'poses': sent_p,
-                      'publish_delay_ms_p50': float(np.percentile(late, 50) * 1e3),
-                      'publish_delay_ms_p99': float(np.percentile(late, 99) * 1e3)}))
-    return 0
+    def next_json(self, timeout_s: float, what: str) -> dict:
+        """The controller's next JSON line; DemoError if it ends or ``timeout_s`` passes."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                line = self.lines.get(timeout=0.1)
+            except queue.Empty:
+                if self.proc.poll() is not None:
+                    for thread in self._threads:
+                        thread.join(1.0)
+                    if self.lines.empty():
+                        raise DemoError(f'controller failed: {self.failure()}') from None
+                elif time.monotonic() > deadline:
+                    raise DemoError(f'the controller did not {what} within {timeout_s:g} s')
+                continue
+            try:
+                return json.loads(line)
+            except ValueError:
+                continue      # not one of its lines (a library's output)
+
+    def wait(self, timeout_s: float) -> int:
+        try:
+            status = self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            raise DemoError('the controller process did not finish') from None
+        for thread in self._threads:
+            thread.join(1.0)
+        return status
+
+
+# ---------------------------------------------------------------------------- listening
 
 
 class Listener:
-    """Predictions, tensions and diagnostics of the node, collected in a background executor."""
+    """Predictions, predicted poses, tensions and diagnostics of the node (predictions keyed
+    by stamp, ns).
 
-    def __init__(self, node):
+    The subscriptions belong to ``poll_node``, which no executor spins: DDS queues what
+    arrives (reliable, :data:`PREDICTION_DEPTH` deep for the predictions) and a timer of
+    ``node`` takes everything waiting every :data:`POLL_S`. One executor wake-up per poll
+    instead of one per message: this process's CPU per message received measured 260 us with
+    a callback per message and 160 us polled (one run each, 1 kHz predictions and predicted
+    poses, a loaded 2-core machine), CPU the node beside it needs.
+    """
+
+    def __init__(self, node, poll_node):
         from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import Vector3Stamped
-        from rclpy.qos import DurabilityPolicy, QoSProfile
+        from geometry_msgs.msg import PoseStamped, Vector3Stamped
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import JointState
         self.cond = threading.Condition()
-        self.predictions = []     # (stamp s, receive wall time s, ux, uy, uz)
+        self.predictions: dict[int, tuple] = {}   # stamp ns -> (receive s, ux, uy, uz)
+        self.poses: dict[int, tuple] = {}         # stamp ns -> (x, y, z, qx, qy, qz, qw)
         self.tensions = []        # (stamp s, tensions...)
-        self.diagnostics = []
-        node.create_subscription(Vector3Stamped, 'predicted_displacement', self._on_prediction,
-                                 5000)
-        node.create_subscription(JointState, 'cable_tensions', self._on_tensions,
-                                 QoSProfile(depth=100,
-                                            durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+        self.diagnostics = []     # (receive monotonic s, statuses)
+        deep = QoSProfile(depth=PREDICTION_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        self.subscriptions = {}
+        self._handlers = {}
+        for cls, topic, handler, qos in (
+                (Vector3Stamped, 'predicted_displacement', self._on_prediction, deep),
+                (PoseStamped, 'predicted_pose', self._on_pose, deep),
+                (JointState, 'cable_tensions', self._on_tensions,
+                 QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL)),
+                (DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)):
+            self.subscriptions[topic] = poll_node.create_subscription(
+                cls, topic, handler, qos)
+            self._handlers[topic] = handler
+        self._timer = node.create_timer(POLL_S, self.poll)
+
+    def poll(self) -> None:
+        """Take and handle every message waiting on the subscriptions."""
+        for topic, sub in self.subscriptions.items():
+            handler = self._handlers[topic]
+            while True:
+                try:
+                    with sub.handle:
+                        taken = sub.handle.take_message(sub.msg_type, sub.raw)
+                except Exception:  # noqa: BLE001 - destroyed at shutdown
+                    break
+                if taken is None:
+                    break
+                handler(taken[0])
+
+    def unmatched(self) -> list[str]:
+        """The node's outputs this process does not see a publisher of yet."""
+        return [name for name, sub in self.subscriptions.items()
+                if sub.get_publisher_count() == 0]
 
     def _on_prediction(self, msg):
         now = time.time()
-        v = msg.vector
+        v, s = msg.vector, msg.header.stamp
         with self.cond:
-            self.predictions.append((msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9,
-                                     now, v.x, v.y, v.z))
+            self.predictions[s.sec * 1_000_000_000 + s.nanosec] = (now, v.x, v.y, v.z)
+            self.cond.notify_all()
+
+    def _on_pose(self, msg):
+        p, q, s = msg.pose.position, msg.pose.orientation, msg.header.stamp
+        with self.cond:
+            self.poses[s.sec * 1_000_000_000 + s.nanosec] = (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
             self.cond.notify_all()
 
     def _on_tensions(self, msg):
@@ -167,265 +224,383 @@ class Listener:
     def _on_diagnostics(self, msg):
         from msg_adapters.diagnostics import read_statuses
         statuses = read_statuses(msg)
+        if not any(name.endswith(': wrench input') for name in statuses):
+            return      # another node's diagnostics
         with self.cond:
-            self.diagnostics.append(statuses)
+            self.diagnostics.append((time.monotonic(), statuses))
             self.cond.notify_all()
+
+    def snapshot(self) -> Received:
+        """Copies of what arrived so far (callbacks may still add to the originals)."""
+        with self.cond:
+            return Received(dict(self.predictions), dict(self.poses), list(self.tensions))
 
     def wait(self, predicate, timeout_s: float) -> bool:
         with self.cond:
             return self.cond.wait_for(predicate, timeout_s)
 
-    def status(self, title: str) -> dict:
-        for statuses in reversed(self.diagnostics):
-            if f'cdpr_dynamics: {title}' in statuses:
-                return statuses[f'cdpr_dynamics: {title}']
-        return {'values': {}, 'message': '', 'level': 0}
+    def status(self, title: str, since: float = -math.inf) -> dict | None:
+        """The latest ``<node>: title`` status received after monotonic time ``since``."""
+        for received, statuses in reversed(self.diagnostics):
+            if received < since:
+                return None
+            for name, status in statuses.items():
+                if name.endswith(f': {title}'):
+                    return status
+        return None
 
 
-def _start_recorder(node, path):
+def _start_recorder(node, poll_node, path):
     """A Recorder of all the demo's traffic to ``path`` (an existing file is never
-    overwritten), or None with --no-record."""
+    overwritten), or None with --no-record. Its subscriptions belong to ``poll_node``, which
+    no executor spins; a timer of ``node`` calls :meth:`Recorder.poll` every :data:`POLL_S`
+    (one wake-up per poll, not per message: the demo's CPU during an 8 s run measured 4.0 s
+    with the recorder's callbacks, 2.0 s polled, beside the node on 2 cores)."""
     if not path:
         return None
     from cdpr_dynamics.recording.base import RecordingError
     from cdpr_dynamics.recording.recorder import Recorder
+    if os.path.lexists(path):
+        raise DemoError(f'{path} exists; not overwriting it (give another --record path, or '
+                        '--no-record)')
     try:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        return Recorder(node, path, DEMO_TOPICS)
+        recorder = Recorder(poll_node, path, DEMO_TOPICS, qos_depth=RECORD_DEPTH,
+                            log_failure=False)
     except (RecordingError, OSError) as exc:
-        raise DemoError(str(exc)) from None
+        raise DemoError(_own_flags(str(exc))) from None
+    node.create_timer(POLL_S, recorder.poll)
+    return recorder
 
 
-def _wait_for_recorder(recorder, node, timeout_s: float) -> None:
-    """Until the recorder subscribes to pose and wrench (the controller is connecting)."""
-    wanted = {node.resolve_topic_name('pose'), node.resolve_topic_name('wrench')}
+def _own_flags(text: str) -> str:
+    """A library's message with its advice in this tool's flags: the recorder's advice
+    (:data:`RECORDER_ADVICE`, a flag of ``cdpr_record``) becomes the demo's, which never
+    overwrites but takes another path."""
+    return text.replace(RECORDER_ADVICE, 'give another --record path, or --no-record')
+
+
+# ------------------------------------------------------------------------------ results
+
+
+# ------------------------------------------------------------------------------ the figure
+
+
+# ------------------------------------------------------------------------------ the run
+
+
+def _cpu_s(who) -> float:
+    """User + system CPU time (s) of this process or of its finished children."""
+    usage = resource.getrusage(who)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _controller_command(args, config: Path, subscribers: int) -> list[str]:
+    command = [sys.executable, '-m', 'cdpr_dynamics.cli.demo', '--controller',
+               '--subscribers', str(subscribers), '--config', str(config),
+               '--duration', repr(args.duration), '--radius', repr(args.radius),
+               '--pose-rate', repr(args.pose_rate), '--wrench-rate', repr(args.wrench_rate),
+               '--excitation-hz', repr(args.excitation_hz), '--timeout', repr(args.timeout)]
+    if args.amplitude_n is not None:
+        command += ['--amplitude-n', repr(args.amplitude_n)]
+    return command
+
+
+def _wait_until_up(node, listener, proc, log, log_path, timeout_s: float) -> None:
+    """Until the node's latched tensions and diagnostics arrived, its pose and wrench
+    subscriptions are in the graph and this process's subscriptions see its outputs."""
+    def missing():
+        out = [f'its {name} subscription' for name in ('pose', 'wrench')
+               if node.count_subscribers(name) == 0]
+        out += [f'its {name} publisher' for name in listener.unmatched()]
+        if not listener.tensions:
+            out.append('a cable_tensions message')
+        if not listener.diagnostics:
+            out.append('a /diagnostics message')
+        return out
+
     deadline = time.monotonic() + timeout_s
-    while not wanted <= recorder.subscribed() and time.monotonic() < deadline:
-        time.sleep(0.02)
+    while not listener.wait(lambda: not missing(), 0.2):
+        if proc.poll() is not None:
+            log.flush()
+            lines = log_path.read_text().strip().splitlines()
+            raise DemoError(f'dynamics_node exited with {proc.returncode}: '
+                            f'{lines[-1] if lines else "no output"}')
+        if time.monotonic() > deadline:
+            raise DemoError(f'dynamics_node did not come up within {timeout_s:g} s: missing '
+                            f'{", ".join(missing())} (log: {log_path})')
 
 
-def _plot(path: Path, settings, listener: Listener, plan: Trajectory, frf: dict,
-          spring: dict, t0: float, summary: str) -> None:
-    import textwrap
-
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    args = plan.args
-    pred = np.array(listener.predictions)
-    tens = np.array([row for row in listener.tensions if row[0] >= t0 - 1e-6])
-    fig, axes = plt.subplots(3, 1, figsize=(10, 11.5))
-    ax = axes[0]
-    ax.plot(pred[:, 0] - t0, pred[:, 4] * 1e3, lw=0.8, label='u_z (predicted_displacement)')
-    ax.set_xlabel('time (s)')
-    ax.set_ylabel('predicted displacement u_z (mm)')
-    ax.grid(True, alpha=0.3)
-    twin = ax.twinx()
-    tt = np.linspace(0, args.duration, 4000)
-    twin.plot(tt, [plan.force(x)[2] for x in tt], color='0.55', lw=0.6, ls=':',
-              label='F_z (wrench)')
-    twin.set_ylabel('F_z (N)')
-    lines = ax.get_legend_handles_labels()
-    more = twin.get_legend_handles_labels()
-    ax.legend(lines[0] + more[0], lines[1] + more[1], loc='upper right', fontsize=8)
-    ax.set_title(f'live prediction: {args.amplitude_n:g} N at {args.excitation_hz:g} Hz along '
-                 f'z, {args.wrench_rate:g} wrenches/s, while moving on a '
-                 f'{args.radius * 100:g} cm circle (poses at {args.pose_rate:g} Hz)')
-    ax = axes[1]
-    if tens.size:
-        for i in range(1, tens.shape[1]):
-            ax.plot(tens[:, 0] - t0, tens[:, i], lw=1.0, label=f'cable {i - 1}')
-    ax.set_xlabel('time (s)')
-    ax.set_ylabel('cable tension (N)')
-    ax.grid(True, alpha=0.3)
-    ax.legend(ncol=4, fontsize=8)
-    ax.set_title('tension distribution along the path (cable_tensions)')
-    ax = axes[2]
-    ax.plot(frf['frequency_hz'], frf['log10_amplitude_z'], label=f'{settings.method} (service)')
-    if spring:
-        ax.plot(spring['frequency_hz'], spring['log10_amplitude_z'], ls='--',
-                label='override method=spring')
-    natural = frf['natural_frequencies_hz']
-    for f in np.unique(np.round(natural[natural <= frf['frequency_hz'][-1]], 2)):
-        ax.axvline(f, color='0.75', lw=0.6)
-    ax.set_xlabel('frequency (Hz)')
-    ax.set_ylabel('log10 |A_z| (m)')
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    ax.set_title(f'frequency_response at the final pose, {frf["frequency_hz"].size} points '
-                 '(grey: natural frequencies)')
-    fig.suptitle('\n'.join(textwrap.wrap(summary, 130)), fontsize=8.5)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def _wait_for_predictions(listener, last_stamp: int, ended: float, timeout_s: float) -> None:
+    """Until the prediction of the last wrench arrived, or the node reports (diagnostics after
+    the controller ended, at ``ended``) a second without wrenches: it predicts no more."""
+    def done():
+        if last_stamp in listener.predictions:
+            return True
+        status = listener.status('wrench input', since=ended + 1.0)
+        return status is not None and float(status['values'].get('rate_hz', 1)) == 0.0
+    listener.wait(done, timeout_s)
 
 
-def _controller_command(args, config: Path, t0: float) -> list[str]:
-    return [sys.executable, '-m', 'cdpr_dynamics.cli.demo', '--controller-t0', repr(t0),
-            '--config', str(config), '--duration', repr(args.duration), '--radius',
-            repr(args.radius), '--pose-rate', repr(args.pose_rate), '--wrench-rate',
-            repr(args.wrench_rate), '--amplitude-n', repr(args.amplitude_n),
-            '--excitation-hz', repr(args.excitation_hz), '--timeout', repr(args.timeout)]
+def _final_status(listener, since: float, predicted: int, timeout_s: float) -> tuple:
+    """(wrench input, pose input) statuses of a diagnostics message received after ``since``
+    that counts at least the ``predicted`` wrenches received here (the node's counts are
+    then final)."""
+    def final():
+        status = listener.status('wrench input', since)
+        return (status_count(status, 'accepted') or -1) >= predicted
+    listener.wait(final, timeout_s)
+    return listener.status('wrench input'), listener.status('pose input')
 
 
-def run(args) -> Path:
-    import json
+def _frf(node, load: Load, timeout_s: float) -> tuple[dict, dict | None, float]:
+    """The node's FRF per unit force along the load (configured model, then spring) and the
+    first call's time (ms)."""
+    from msg_adapters.frf_service import FrequencyResponseError, call_frequency_response
+    unit = {f'force_{k}_n': float(v) for k, v in zip('xyz', load.direction)}
+    unit.update({f'moment_{k}_nm': 0.0 for k in 'xyz'})
+    names = ['frequency_hz'] + [f'{a}_{k}_{u}' for a, u in (('amplitude', 'm'), ('phase', 'rad'))
+                                for k in 'xyz']
+    try:
+        start = time.perf_counter()
+        frf = call_frequency_response(node, overrides=unit, timeout_s=timeout_s, spin=False)
+        frf_ms = (time.perf_counter() - start) * 1e3
+        spring = call_frequency_response(node, names, {**unit, 'method': 'spring'}, timeout_s,
+                                         spin=False)
+    except FrequencyResponseError as exc:
+        raise DemoError(f'frequency_response: {exc}') from None
+    return frf, spring, frf_ms
 
+
+def run(args) -> dict:
+    """The demo; returns the summary (also printed, and written to ``args.json``)."""
     from cdpr_dynamics.node_process import start_node, stop_process
 
     config = Path(args.config) if args.config else default_config_path()
-    try:
-        settings = load_settings(config)
-    except ConfigError as exc:
-        raise DemoError(str(exc)) from None
+    settings, options = read_config(config)
     plan = Trajectory(settings, args)
-    env, reservation = _environment(args)
+    if args.record and os.path.lexists(args.record):
+        raise DemoError(f'{args.record} exists; not overwriting it (give another --record '
+                        'path, or --no-record)')
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    env, reservation = _environment()
     log_path = Path(env['ROS_LOG_DIR']) / 'dynamics_node.log'
     log = open(log_path, 'w')
     proc = start_node(config, env, stdout=log, stderr=subprocess.STDOUT)
-    controller = None
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-    from rclpy.node import Node
-
-    from msg_adapters.frf_service import FrequencyResponseError, call_frequency_response
-
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: main's one line
-    node = Node('cdpr_demo')
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    listener = Listener(node)
+    controller = recorder = status = spinner = None
+    nodes = []
     spinning = threading.Event()
     spinning.set()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: main's one line
+    executor = SingleThreadedExecutor()
 
     def spin():
         while spinning.is_set():
             executor.spin_once(timeout_sec=0.05)
 
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
-    recorder = None
-    status = None
     try:
-        recorder = _start_recorder(node, args.record)
-
-        def node_ready():
-            return (node.count_subscribers('wrench') > 0 and node.count_subscribers('pose') > 0
-                    and listener.tensions and listener.diagnostics)
-        deadline = time.monotonic() + args.timeout
-        while not listener.wait(node_ready, 0.2):
-            if proc.poll() is not None:
-                log.flush()
-                lines = log_path.read_text().strip().splitlines()
-                raise DemoError(f'dynamics_node exited with {proc.returncode}: '
-                                f'{lines[-1] if lines else "no output"}')
-            if time.monotonic() > deadline:
-                raise DemoError(f'dynamics_node did not come up within {args.timeout:g} s '
-                                f'(log: {log_path})')
-        t0 = time.time() + 2.0       # the controller's first stamp, once it is connected
-        controller = subprocess.Popen(_controller_command(args, config, t0), env=env,
-                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        if recorder is not None:     # record the controller's topics from its first message
-            _wait_for_recorder(recorder, node, min(5.0, t0 - time.time()))
-        print(f'cdpr_demo: node up on ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]} (log {log_path}); '
-              f'controller runs {args.duration:g} s')
-        try:
-            out, err = controller.communicate(timeout=args.duration + args.timeout + 5)
-        except subprocess.TimeoutExpired:
-            raise DemoError('the controller process did not finish') from None
-        if controller.returncode != 0:
-            lines = err.strip().splitlines()
-            raise DemoError(f'controller failed: {lines[-1] if lines else controller.returncode}')
-        sent = json.loads(out.strip().splitlines()[-1])
-        n_sent = sent['wrenches']
-        listener.wait(lambda: len(listener.predictions) >= n_sent, 3.0)
-        try:
-            start = time.perf_counter()
-            frf = call_frequency_response(node, timeout_s=args.timeout, spin=False)
-            frf_ms = (time.perf_counter() - start) * 1e3
-            spring = call_frequency_response(node, ['frequency_hz', 'log10_amplitude_z'],
-                                             {'method': 'spring'}, args.timeout, spin=False)
-        except FrequencyResponseError as exc:
-            raise DemoError(f'frequency_response: {exc}') from None
-        count = len(listener.diagnostics)
-        listener.wait(lambda: len(listener.diagnostics) > count + 1, 3.0)   # fresh statistics
-        if not listener.predictions:
+        node = Node('cdpr_demo', start_parameter_services=False)   # a smaller wait set
+        nodes.append(node)
+        poll_node = Node('cdpr_demo_listener', start_parameter_services=False)   # not spun
+        nodes.append(poll_node)
+        executor.add_node(node)
+        listener = Listener(node, poll_node)
+        spinner = threading.Thread(target=spin, daemon=True)
+        spinner.start()
+        recorder = _start_recorder(node, poll_node, args.record)
+        _wait_until_up(node, listener, proc, log, log_path, args.timeout)
+        subscribers = node.count_subscribers('wrench') + (recorder is not None)
+        controller = Controller(_controller_command(args, config, subscribers), env)
+        start = controller.next_json(args.timeout + 10.0, 'see its subscribers')
+        cpu_at_start = _cpu_s(resource.RUSAGE_SELF)
+        t0_ns = int(start['t0_ns'])
+        print(f'{PROG}: node up on ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]} (log {log_path}); '
+              f'controller matched {start["matched"]["wrench"]} subscribers, runs '
+              f'{args.duration:g} s', flush=True)
+        sent = controller.next_json(args.duration + args.timeout + 5.0, 'finish')
+        if controller.wait(10.0) != 0:
+            raise DemoError(f'controller failed: {controller.failure()}')
+        ended = time.monotonic()
+        cpu_during = _cpu_s(resource.RUSAGE_SELF) - cpu_at_start
+        published = set(stamps_ns(t0_ns, sent['wrenches'], args.wrench_rate).tolist())
+        _wait_for_predictions(listener, max(published), ended, args.timeout)
+        frf, spring, frf_ms = _frf(node, plan.load, args.timeout)
+        got = listener.snapshot()
+        predicted = len(published & got.predictions.keys())
+        poses_predicted = len(published & got.poses.keys())
+        stray = len(got.predictions.keys() - published)
+        wrench_status, pose_status = _final_status(listener, ended, predicted, 3.0)
+        if not got.predictions:
             raise DemoError('no predicted_displacement received')
-        pred = np.array(listener.predictions)
-        latency = (pred[:, 1] - pred[:, 0]) * 1e3
-        wrench = listener.status('wrench input')['values']
-        model = listener.status('model')['values']
-        peak = int(np.argmax(frf['amplitude_z_m']))
-        summary = (f'{model.get("method", settings.method)} model, {model.get("dofs", "?")} '
-                   f'DOFs: node predicted {wrench.get("accepted", "?")} of {n_sent} '
-                   f'wrenches, {len(pred)} received here; max |u_z| '
-                   f'{np.abs(pred[:, 4]).max() * 1e3:.3f} mm; stamp -> prediction received '
-                   f'p50 {np.percentile(latency, 50):.2f} ms, p99 '
-                   f'{np.percentile(latency, 99):.2f} ms; node compute per wrench p50 '
-                   f'{float(wrench.get("compute_ms_p50", "nan")):.3f} ms, p99 '
-                   f'{float(wrench.get("compute_ms_p99", "nan")):.3f} ms; FRF call '
-                   f'{frf_ms:.0f} ms, largest |A_z| {frf["amplitude_z_m"][peak] * 1e3:.3f} mm '
-                   f'at {frf["frequency_hz"][peak]:.1f} Hz')
+        model = (listener.status('model') or {'values': {}})['values']
+        tensions = tension_estimate(settings, options, got, t0_ns)
+        received = np.array(sorted(got.predictions), dtype=np.int64)
+        pred = np.array([got.predictions[s] for s in received])
+        latency = (pred[:, 0] - received * 1e-9) * 1e3
+        h = along(frf, plan.load.direction)
+        peak = int(np.argmax(h))
+        result = {
+            'method': model.get('method', settings.method), 'dofs': model.get('dofs', '?'),
+            'load_force_n': plan.load.force_n.tolist(),
+            'load_moment_nm': plan.load.moment_nm.tolist(),
+            'excitation_hz': args.excitation_hz, 't0_ns': t0_ns,
+            'subscribers_matched_at_start': start['matched'],
+            'subscribers_at_first_wrench': sent['subscribers_at_first_wrench'],
+            'wrenches_published': sent['wrenches'], 'poses_published': sent['poses'],
+            'wrenches_predicted': predicted, 'predicted_poses_received': poses_predicted,
+            'predictions_not_of_a_published_wrench': stray,
+            'prediction_ratio': predicted / max(sent['wrenches'], 1),
+            'node_wrenches_accepted': status_count(wrench_status, 'accepted'),
+            'node_wrenches_rejected': status_count(wrench_status, 'rejected'),
+            'node_poses_accepted': status_count(pose_status, 'accepted'),
+            'node_poses_rejected': status_count(pose_status, 'rejected'),
+            'latency_ms_p50': float(np.percentile(latency, 50)),
+            'latency_ms_p99': float(np.percentile(latency, 99)),
+            'max_displacement_m': float(np.abs(pred[:, 1:]).max()),
+            'frf_call_ms': frf_ms,
+            'peak_receptance_m_per_n': float(h[peak]),
+            'peak_frequency_hz': float(frf['frequency_hz'][peak]),
+            'platform_natural_frequencies_hz': np.asarray(
+                frf.get('platform_natural_frequencies_hz', [])).tolist(),
+            'demo_cpu_s': _cpu_s(resource.RUSAGE_SELF), 'demo_cpu_s_while_controlling': cpu_during,
+            'controller_cpu_s': _cpu_s(resource.RUSAGE_CHILDREN),
+            'load_average_1min': os.getloadavg()[0],
+        }
+        lines = [
+            f'{result["method"]} model, {result["dofs"]} DOFs; load {plan.load.amplitude_n:g} '
+            f'N along {np.round(plan.load.direction, 3).tolist()} at {args.excitation_hz:g} Hz',
+            f'wrenches: {sent["wrenches"]} published, {predicted} predicted (received here, '
+            f'matched by stamp): {100 * result["prediction_ratio"]:.2f} %',
+            input_sentence('wrenches', sent['wrenches'], wrench_status),
+            input_sentence('poses', sent['poses'], pose_status)]
+        if isinstance(tensions, TensionEstimate):
+            low, cable, _ = tensions.lowest
+            result.update(lowest_tension_n=low, lowest_tension_cable=cable,
+                          slack=bool(tensions.slack.any()),
+                          slack_cables=np.flatnonzero(tensions.slack.any(axis=0)).tolist())
+            lines.append(f'tensions: {tensions.sentence()}')
+        else:
+            lines.append(f'tensions: {tensions}')
+        lines.append(f'max |u| {result["max_displacement_m"] * 1e3:.3f} mm; stamp -> prediction '
+                     f'received p50 {result["latency_ms_p50"]:.2f} ms, p99 '
+                     f'{result["latency_ms_p99"]:.2f} ms; FRF call {frf_ms:.0f} ms, largest |H| '
+                     f'{h[peak]:.3g} m/N at {frf["frequency_hz"][peak]:.1f} Hz')
         output = Path(args.output)
-        _plot(output, settings, listener, plan, frf, spring, t0, summary)
-        print(f'cdpr_demo: {summary}')
-        print(f'cdpr_demo: wrote {output.resolve()}')
+        plot(output, result, got, plan, frf, spring, tensions, t0_ns)
+        lines.append(f'wrote {output.resolve()}')
         if recorder is not None:
-            recorder.close()
+            summary = recorder.close()
             recorder = None
-            print(f'cdpr_demo: recorded all traffic to {Path(args.record).resolve()}')
+            recorded = {name.lstrip('/'): n for name, n in summary.topics.items()}
+            result['recorded'] = recorded
+            result['record_path'] = str(Path(args.record).resolve())
+            expected = {'wrench': sent['wrenches'], 'pose': sent['poses'],
+                        'predicted_displacement': result['node_wrenches_accepted'],
+                        'predicted_pose': result['node_wrenches_accepted']}
+            parts = [f'{name} {n}' + (f' of {expected[name]}' if expected.get(name) is not None
+                                      else '') for name, n in recorded.items()]
+            lines.append(f'recorded to {result["record_path"]}: ' + ', '.join(parts)
+                         + (f' (stopped early: {summary.error})' if summary.error else ''))
+        for line in lines:
+            print(f'{PROG}: {line}')
+        if args.json:
+            Path(args.json).write_text(json.dumps(result, indent=1))
     finally:
-        if controller is not None and controller.poll() is None:
-            stop_process(controller, 5.0)
+        if controller is not None and controller.proc.poll() is None:
+            stop_process(controller.proc, 5.0)
         if recorder is not None:
             recorder.close()
         status = stop_process(proc)
         spinning.clear()
-        spinner.join(2.0)
+        if spinner is not None:
+            spinner.join(2.0)
         executor.shutdown()
-        node.destroy_node()
+        for each in reversed(nodes):
+            each.destroy_node()
         rclpy.try_shutdown()
         log.close()
         if reservation is not None:
             reservation.release()
     if status != 0:
         raise DemoError(f'dynamics_node exited with status {status} (log: {log_path})')
-    return output
+    return result
 
 
-@interruptible('cdpr_demo')
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        prog='cdpr_demo', description='Live vibration prediction demo: the node, a scripted '
-        'controller and a frequency-response client; writes a PNG.')
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors that name only this tool's flags."""
+
+    def error(self, message):
+        flags = sorted({s for a in self._actions for s in a.option_strings
+                        if s.startswith('--') and a.help != argparse.SUPPRESS})
+        unknown = re.findall(r'(--[\w-]+)', message) if 'unrecognized' in message else []
+        hint = [m for u in unknown for m in difflib.get_close_matches(u.split('=')[0], flags, 1)]
+        advice = f'did you mean {hint[0]}? ' if hint else ''
+        self.exit(2, f'{self.prog}: error: {message} ({advice}{self.prog} --help lists the '
+                  'options)\n')
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog=PROG, description='Live vibration prediction demo: the node, a scripted '
+        'controller and a frequency-response client; writes a PNG and an MCAP recording.')
     parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
     parser.add_argument('--duration', type=float, default=8.0, help='controller run (s)')
     parser.add_argument('--output', default='out/cdpr_demo.png', help='PNG to write')
     parser.add_argument('--radius', type=float, default=0.05, help='circle radius (m)')
     parser.add_argument('--pose-rate', type=float, default=50.0, help='poses per second')
     parser.add_argument('--wrench-rate', type=float, default=1000.0, help='wrenches per second')
-    parser.add_argument('--amplitude-n', type=float, default=1500.0,
-                        help='harmonic force amplitude along z (N)')
+    parser.add_argument('--amplitude-n', type=float, default=None,
+                        help="harmonic force amplitude (N, >= 0) along the config's frf.force_n "
+                        '(default: frf.force_n and frf.moment_nm as they are)')
     parser.add_argument('--excitation-hz', type=float, default=5.0,
                         help='harmonic force frequency (Hz)')
     parser.add_argument('--record', default=None,
                         help='MCAP file for all traffic (default: out/cdpr_demo_<time>.mcap '
                         'beside the PNG; an existing file is never overwritten)')
     parser.add_argument('--no-record', action='store_true', help='do not record the traffic')
+    parser.add_argument('--json', help='also write the summary (counts) to this JSON file')
     parser.add_argument('--timeout', type=float, default=30.0,
-                        help='longest wait for the node or the service (s)')
-    parser.add_argument('--controller-t0', type=float, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    if not (args.duration > 0 and args.pose_rate > 0 and args.wrench_rate > 0):
-        print('cdpr_demo: error: --duration and the rates must be positive', file=sys.stderr)
+                        help='longest wait for the node, the controller or the service (s)')
+    parser.add_argument('--controller', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--subscribers', type=int, default=1, help=argparse.SUPPRESS)
+    return parser
+
+
+def _check_numbers(args) -> str | None:
+    """The first bad number as a one-line reason, or None."""
+    for flag, value, low in (('--duration', args.duration, 0.0),
+                             ('--pose-rate', args.pose_rate, 0.0),
+                             ('--wrench-rate', args.wrench_rate, 0.0),
+                             ('--timeout', args.timeout, 0.0)):
+        if not (math.isfinite(value) and value > low):
+            return f'{flag} must be a positive number, got {value:g}'
+    if round(args.duration * args.wrench_rate) < 1:
+        return f'--duration {args.duration:g} s at --wrench-rate {args.wrench_rate:g} is no wrench'
+    for flag, value in (('--amplitude-n', args.amplitude_n), ('--radius', args.radius),
+                        ('--excitation-hz', args.excitation_hz)):
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            return f'{flag} must be a number >= 0, got {value:g}'
+    return None
+
+
+@interruptible(PROG)
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    bad = _check_numbers(args)
+    if bad:
+        print(f'{PROG}: error: {bad}', file=sys.stderr)
         return 1
-    if args.controller_t0 is not None:
-        args.t0 = args.controller_t0
+    if args.controller:
         args.config = args.config or str(default_config_path())
-        return controller_main(args)
+        try:
+            return controller_main(args)
+        except DemoError as exc:
+            print(exc, file=sys.stderr)     # the demo says 'controller failed: ...'
+            return 1
     if args.no_record:
         args.record = None
     elif args.record is None:
@@ -434,11 +609,11 @@ def main(argv=None) -> int:
     try:
         run(args)
     except DemoError as exc:
-        print(f'cdpr_demo: error: {exc}', file=sys.stderr)
+        print(f'{PROG}: error: {exc}', file=sys.stderr)
         return 1
     except Exception as exc:  # anything unforeseen: still one line, not a traceback
         text = str(exc).strip().splitlines()
-        print(f'cdpr_demo: error: {type(exc).__name__}: {text[0] if text else ""}',
+        print(f'{PROG}: error: {type(exc).__name__}: {_own_flags(text[0]) if text else ""}',
               file=sys.stderr)
         return 1
     return 0

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import math
 import sys
 import time
 from pathlib import Path
@@ -32,6 +31,7 @@ from cdpr_dynamics.cli import interruptible
 from cdpr_dynamics.config import ConfigError, load_settings
 from cdpr_dynamics.dynamics import DynamicsError
 from cdpr_dynamics.estimates import Estimator
+from cdpr_dynamics.figures import CAP_PCT, pareto, tradeoff_figure  # noqa: F401 (re-exported)
 from cdpr_dynamics.reference import measure_error, reference_solution, solve
 from cdpr_dynamics.selection import SelectionError, choose_model
 
@@ -41,10 +41,6 @@ SWEEP = ([('spring', 1)] + [('fem', n) for n in (1, 2, 4, 8, 16, 32, 64)]
 COLUMNS = ('method', 'elements_per_cable', 'dofs', 'freq_error_pct', 'frf_error_pct', 'time_s',
            'modes_in_band', 'missed_modes', 'estimated_freq_error_pct',
            'estimated_frf_error_pct', 'valid', 'note')
-FLOOR_PCT = 1e-5      # errors below this are drawn at it (log axes)
-# CAP_PCT: errors above this are drawn at it, labelled with their value (the CSV and the
-# estimates are not capped)
-CAP_PCT = 100.0
 
 
 def time_solution(settings, eq, method, n, reference, repeat: int):
@@ -90,23 +86,6 @@ def sweep(settings, eq, reference, repeat: int = 3, progress=None, choice=None) 
     return rows
 
 
-def pareto(times, errors) -> np.ndarray:
-    """Indices of the points no other point beats in both time and error, by time."""
-    times, errors = np.asarray(times, float), np.asarray(errors, float)
-    order = np.lexsort((errors, times))
-    front, best = [], math.inf
-    for i in order:
-        if errors[i] < best:
-            front.append(i)
-            best = errors[i]
-    return np.array(front, dtype=int)
-
-
-def label(row) -> str:
-    n = row['elements_per_cable']
-    return f"{row['method']} {n}" if row['method'] in ('fem', 'fem_sag') else row['method']
-
-
 def write_csv(rows: list[dict], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, 'w', newline='', encoding='utf-8') as stream:
@@ -117,68 +96,13 @@ def write_csv(rows: list[dict], path: Path) -> None:
                              for k, v in row.items()})
 
 
-def _label_offsets(times, errors) -> list[tuple[float, float]]:
-    """Label offsets (points) that stack labels of points drawn on top of each other."""
-    placed: list[tuple[float, float, int]] = []
-    offsets = []
-    for t, e in zip(np.log10(times), np.log10(errors)):
-        near = sum(1 for pt, pe, _ in placed if abs(pt - t) < 0.3 and abs(pe - e) < 0.12)
-        placed.append((t, e, near))
-        offsets.append((4.0, 3.0 - 9.0 * near))
-    return offsets
-
-
 def plot(rows: list[dict], reference, path: Path, scene_name: str,
-         tolerance: float | None = None) -> None:
-    """Two log-log panels (frequency error, FRF error) against time, Pareto fronts marked,
-    the row ``auto`` picked (at ``tolerance``) starred; errors capped at :data:`CAP_PCT` for
-    the drawing only (a triangle, the value in its label)."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import FuncFormatter, NullFormatter
-
-    ok = [r for r in rows if 'time_s' in r]
-    colors = {'spring': 'tab:gray', 'fem': 'tab:blue', 'catenary': 'tab:olive',
-              'catenary_exact': 'tab:green', 'fem_sag': 'tab:red', 'dsm': 'black'}
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.6), sharex=True)
-    times = 1e3 * np.array([r['time_s'] for r in ok])
-    for ax, key, what in ((axes[0], 'freq_error_pct', 'natural frequencies in the band'),
-                          (axes[1], 'frf_error_pct', 'damped FRF of the centroid')):
-        values = np.array([r[key] for r in ok], dtype=float)
-        errors = np.clip(values, FLOOR_PCT, CAP_PCT)
-        for r, t, e, v, offset in zip(ok, times, errors, values,
-                                      _label_offsets(times, errors)):
-            ax.scatter(t, e, color=colors.get(r['method'], 'tab:purple'), s=28, zorder=3,
-                       marker='^' if v > CAP_PCT else 'o')
-            ax.annotate(label(r) + (f' ({v:.0f} %)' if v > CAP_PCT else ''), (t, e),
-                        textcoords='offset points', xytext=offset, fontsize=7)
-        front = pareto(times, errors)
-        ax.step(times[front], errors[front], where='post', color='tab:orange', lw=1.5,
-                zorder=2, label='Pareto front')
-        for i in [i for i, r in enumerate(ok) if r.get('auto')]:
-            ax.scatter(times[i], errors[i], marker='*', s=260, facecolor='none',
-                       edgecolor='tab:purple', zorder=4, label='auto' + (
-                           f' at {100 * tolerance:g} %' if tolerance else ''))
-        ax.axhline(100.0, color='0.6', lw=0.8, ls=':')
-        ax.set_xscale('log')
-        ax.set_yscale('log')
-        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f'{v:g}'))
-        ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.set_xlabel('compute time: build + FRF + modes in the band (ms)')
-        ax.set_ylabel(f'max relative error, {what} (%)')
-        ax.grid(True, which='both', alpha=0.25)
-        ax.legend(loc='lower left', fontsize=8)
-    axes[0].text(0.99, 0.99, '100 % = modes missed', transform=axes[0].transAxes,
-                 ha='right', va='top', fontsize=7, color='0.4')
-    axes[1].text(0.99, 0.99, 'triangles: off by more than 100 % (value in the label)',
-                 transform=axes[1].transAxes, ha='right', va='top', fontsize=7, color='0.4')
-    fig.suptitle(f'{scene_name}: error over 0-{reference.f_max_hz:g} Hz against '
-                 f'{reference.label}', fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+         tolerance: float | None = None):
+    """The chart (:func:`cdpr_dynamics.figures.tradeoff_figure`), titled with the scene, the
+    band and the reference; errors capped at :data:`CAP_PCT` for the drawing only (the CSV
+    and the estimates are not)."""
+    return tradeoff_figure(rows, path, f'{scene_name}: error over 0-{reference.f_max_hz:g} Hz '
+                           f'against {reference.label}', tolerance)
 
 
 def summary(rows: list[dict], reference) -> str:

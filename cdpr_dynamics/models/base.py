@@ -16,6 +16,7 @@ Models are registered by name in :mod:`cdpr_dynamics.models`.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
@@ -44,11 +45,11 @@ class CableSet:
     def n_cables(self) -> int:
         return self.chord_m.shape[0]
 
-    @property
+    @functools.cached_property
     def length_m(self) -> np.ndarray:
         return np.linalg.norm(self.chord_m, axis=1)
 
-    @property
+    @functools.cached_property
     def unit(self) -> np.ndarray:
         return self.chord_m / self.length_m[:, None]
 
@@ -95,6 +96,9 @@ class CableAssembly:
     blocks: ChainBlocks | None
     valid: bool = True
     warnings: tuple[str, ...] = field(default=())
+    # optional shortcuts of end_stiffness (the same numbers, cheaper for the platform sums):
+    decoupled: 'AxialTransverse | None' = None     # S_i = a_i u u^T + t_i (I - u u^T)
+    constant_stiffness: np.ndarray | None = None   # (n, 3, 3) real: S_i(lam) for every lam
 
     @property
     def interior_dofs(self) -> int:
@@ -107,6 +111,23 @@ class CableAssembly:
     def static_end_stiffness(self) -> np.ndarray:
         """(n, 3, 3) real stiffness of each cable at its platform end (N/m)."""
         return self.end_stiffness(np.zeros(1))[0].real
+
+
+class AxialTransverse(NamedTuple):
+    """End stiffness of straight cables whose axial and transverse motions decouple:
+    S_i(lam) = a_i(lam) u_i u_i^T + t_i(lam) (I - u_i u_i^T).
+
+    ``unit`` (n, 3); ``stiffness(lam)`` for ``lam`` (nl,) gives (2, n, nl): a (row 0) and t
+    (row 1) in N/m, frequency last, real for real lam and complex for complex lam.
+    """
+
+    unit: np.ndarray
+    stiffness: Callable[[np.ndarray], np.ndarray]
+
+    def end_stiffness(self, lam) -> np.ndarray:
+        """(nl, n, 3, 3) complex: the :class:`CableAssembly` ``end_stiffness`` of these."""
+        parts = self.stiffness(np.ravel(lam))
+        return axial_transverse(self.unit, parts[0].T, parts[1].T).astype(complex, copy=False)
 
 
 def axial_transverse(unit: np.ndarray, axial: np.ndarray, transverse: np.ndarray) -> np.ndarray:
@@ -131,7 +152,7 @@ def massless_assembly(method: str, stiffness: np.ndarray, end_force_n: np.ndarra
         return np.broadcast_to(stiffness, (np.size(lam),) + stiffness.shape).astype(complex)
 
     return CableAssembly(method, 1, end_stiffness, end_force_n, blocks, valid=valid,
-                         warnings=tuple(warnings))
+                         warnings=tuple(warnings), constant_stiffness=stiffness)
 
 
 def slack_warnings(tension_n: np.ndarray) -> tuple[str, ...]:

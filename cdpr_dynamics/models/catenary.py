@@ -63,6 +63,7 @@ Irvine's sag parameter per cable is :func:`sag_parameter`.
 """
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -105,26 +106,32 @@ def _parts(force, length, gamma, up) -> _Parts:
     t_b = np.sqrt(h2 + a0 * a0)
     t_a = np.sqrt(h2 + a1 * a1)
     same = a0 * a1 > 0.0
+    taut = bool(np.all(same))           # no low point in any cable: one branch (same numbers)
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        p = np.where(same, (a0 + a1) / (a0 * t_a + a1 * t_b),
-                     (h2 + t_a * t_b - a0 * a1) / ((t_a + t_b) * h2))
+        p = (a0 + a1) / (a0 * t_a + a1 * t_b)
+        if not taut:
+            p = np.where(same, p, (h2 + t_a * t_b - a0 * a1) / ((t_a + t_b) * h2))
         s = length * (a0 + a1) / (t_a + t_b)
         q = length * p * _asinhc(gamma * length * p)
     # lowest tension: at an end, or H where the tangent is horizontal inside the cable
-    min_tension = np.where(same, np.minimum(t_a, t_b), np.sqrt(h2))
+    min_tension = np.minimum(t_a, t_b)
+    if not taut:
+        min_tension = np.where(same, min_tension, np.sqrt(h2))
     return _Parts(v, h_vec, h2, t_b, t_a, p, q, s, min_tension)
 
 
-def end_position(force, unstrained_length, ea, gamma, up) -> np.ndarray:
+def end_position(force, unstrained_length, ea, gamma, up, parts: _Parts | None = None
+                 ) -> np.ndarray:
     """Position of end B relative to end A (Eq. 25 corrected), shape (..., 3).
 
     ``force`` (..., 3) is the force applied at B on the cable, ``unstrained_length`` (...) the
     unstrained length (or the unstrained arc length from B for a point inside the cable),
-    ``ea`` (N), ``gamma`` (N per unstrained metre), ``up`` the unit vector against gravity.
+    ``ea`` (N), ``gamma`` (N per unstrained metre), ``up`` the unit vector against gravity;
+    ``parts``: :func:`_parts` of the same arguments where the caller has them already.
     """
     up = np.asarray(up, dtype=float)
     length = np.asarray(unstrained_length, dtype=float)
-    r = _parts(force, length, gamma, up)
+    r = _parts(force, length, gamma, up) if parts is None else parts
     force = np.asarray(force, dtype=float)
     elastic = (length / ea)[..., None] * (force - (0.5 * gamma * length)[..., None] * up)
     return elastic + r.q[..., None] * r.h_vec + r.s[..., None] * up
@@ -162,8 +169,10 @@ def up_and_weight(cables: CableSet) -> tuple[np.ndarray, float]:
     return -g / norm, float(cables.weight_per_length_n_per_m)
 
 
+@functools.lru_cache(maxsize=8)
 def sag_parameter(cables: CableSet) -> np.ndarray:
-    """Irvine's sag parameter lambda^2 of every cable, (n,), dimensionless.
+    """Irvine's sag parameter lambda^2 of every cable, (n,), dimensionless, read-only (kept
+    for the last few CableSets, which are immutable: a pose update asks twice).
 
     lambda^2 = (gamma L cos(theta)/H)^2 L/(H L_e/EA), L_e = L (1 + 8 (d/L)^2), d = gamma L^2
     cos(theta)/(8 H), with L the chord, theta its inclination to the horizontal and H the tension
@@ -182,7 +191,9 @@ def sag_parameter(cables: CableSet) -> np.ndarray:
         ratio = gamma * length * cos_theta / t
         sag_ratio = ratio / 8.0
         lam2 = ratio ** 2 * cables.ea_n / (t * (1.0 + 8.0 * sag_ratio ** 2))
-    return np.where(t > 0, lam2, np.inf)
+    out = np.where(t > 0, lam2, np.inf)
+    out.setflags(write=False)
+    return out
 
 
 # --------------------------------------------------------------------------- the exact solve
@@ -205,20 +216,34 @@ class CatenaryState(NamedTuple):
     reasons: tuple[str, ...]
 
 
+def _row_norm(x: np.ndarray) -> np.ndarray:
+    """|x| along the last axis: numpy's norm (the same operations, the same numbers) without
+    its argument handling, half the cost on a few cables."""
+    return np.sqrt(np.add.reduce(x * x, axis=-1))
+
+
 def _residual(force, length, target, tension, ea, gamma, up, scale):
-    pos = end_position(force, length, ea, gamma, up) - target
-    t = np.linalg.norm(force, axis=-1)
-    return np.concatenate([pos, (scale * (t / tension - 1.0))[:, None]], axis=1)
+    """(residual (n, 4) of the closure and of |F| = T, the :func:`_parts` it was made of)."""
+    parts = _parts(force, length, gamma, up)
+    pos = end_position(force, length, ea, gamma, up, parts) - target
+    t = _row_norm(force)
+    return np.concatenate([pos, (scale * (t / tension - 1.0))[:, None]], axis=1), parts
 
 
 def solve(cables: CableSet, max_iterations: int = 60,
           min_tension_ratio: float = 1e-6, start: CatenaryState | None = None,
-          max_halvings: int = 30) -> CatenaryState:
+          max_halvings: int = 30, tolerance: float = 1e-13) -> CatenaryState:
     """Newton on (F, L0) per cable: the end closes on the chord and |F| = T_i.
 
-    Starts from the straight taut cable (F = -T u, L0 = L/(1 + T/EA)), or from ``start`` (a
-    nearby solution, e.g. of the previous pose or tension: its end-force direction and L0, the
-    force rescaled to |F| = T_i) where that cable was valid; damped by step halving.
+    Starts from the taut parabola (L0 = L/(1 + T/EA) and F with |F| = T such that the mean
+    tension vector F - gamma L0 e/2 lies along the chord, its first-order closure: F = c l/|l|
+    + gamma L0/2 e, c = -g cos + sqrt(T^2 - g^2 sin^2), g = gamma L0/2, cos = e.l/|l|; used
+    where g < T/4, else the straight cable F = -T u), or from ``start`` (a nearby solution,
+    e.g. of the previous pose or tension: its end-force direction and L0, the force rescaled
+    to |F| = T_i) where that cable was valid; damped by step halving. Newton stops at a
+    residual of ``tolerance`` max(L, 1) (the end closure in m, the tension scaled by L); a
+    solution is accepted (valid) below 1e-9 max(L, 1), so a ``tolerance`` up to 1e-10 changes
+    no verdict, only the last digits of F and L0.
     A cable is invalid when T_i <= 0, when Newton does not converge (no catenary with that end
     tension spans the chord) or when the tension somewhere along it is below
     ``min_tension_ratio`` times T_i (slack: it cannot hold its own weight). ``max_iterations``
@@ -237,26 +262,47 @@ def solve(cables: CableSet, max_iterations: int = 60,
     scale = length
     force = -t_safe[:, None] * unit
     l0 = length / (1.0 + t_safe / ea)
-    if start is not None:
-        warm = start.valid & live
-        direction = start.force_n / np.linalg.norm(start.force_n, axis=1)[:, None]
-        force = np.where(warm[:, None], t_safe[:, None] * direction, force)
-        l0 = np.where(warm, start.unstrained_length_m, l0)
-    res = _residual(force, l0, target, t_safe, ea, gamma, up, scale)
-    norm = np.linalg.norm(res, axis=1)
-    tol = 1e-13 * np.maximum(length, 1.0)
+    if gamma > 0.0:
+        g = 0.5 * gamma * l0
+        cos = -(unit @ up)                                  # e . l/|l|, l = -chord
+        disc = t_safe * t_safe - g * g * (1.0 - cos * cos)
+        taut = (g < 0.25 * t_safe) & (disc > 0.0)
+        c = -g * cos + np.sqrt(np.where(taut, disc, 1.0))
+        force = np.where(taut[:, None], -c[:, None] * unit + g[:, None] * up, force)
+    res, parts = _residual(force, l0, target, t_safe, ea, gamma, up, scale)
+    norm = _row_norm(res)
+    if start is not None:   # per cable the better start: the nearby solution or the parabola
+        direction = start.force_n / _row_norm(start.force_n)[:, None]
+        near_f = t_safe[:, None] * direction
+        near_l = start.unstrained_length_m
+        with np.errstate(all='ignore'):
+            near_r, near_p = _residual(near_f, near_l, target, t_safe, ea, gamma, up, scale)
+            near_n = _row_norm(near_r)
+        warm = start.valid & live & (near_n < norm)
+        if warm.all():
+            force, l0, res, norm, parts = near_f, near_l, near_r, near_n, near_p
+        elif warm.any():
+            force = np.where(warm[:, None], near_f, force)
+            l0 = np.where(warm, near_l, l0)
+            res = np.where(warm[:, None], near_r, res)
+            norm = np.where(warm, near_n, norm)
+            parts = None
+    tol = tolerance * np.maximum(length, 1.0)
     with np.errstate(all='ignore'):       # trial states past slack give inf/nan: rejected
-        force, l0, res, iterations = _newton(force, l0, res, norm, tol, live, target, t_safe, ea,
-                                             gamma, up, scale, max_iterations, max_halvings)
-        _, t_a, t_min = tensions(force, l0, gamma, up)
-    residual = np.linalg.norm(res[:, :3], axis=1)
+        force, l0, res, iterations, parts = _newton(force, l0, res, norm, tol, live, target,
+                                                    t_safe, ea, gamma, up, scale,
+                                                    max_iterations, max_halvings, parts)
+        if parts is None:
+            parts = _parts(force, l0, gamma, up)
+        t_a, t_min = parts.t_a, parts.min_tension
+    residual = _row_norm(res[:, :3])
     residual = np.where(np.isfinite(residual), residual, np.inf)
     tension_error = np.abs(res[:, 3]) / scale
     converged = live & (residual <= 1e-9 * np.maximum(length, 1.0)) & (tension_error <= 1e-9)
     taut = t_min > min_tension_ratio * t_safe
     valid = converged & taut
     reasons = []
-    for i in range(n):
+    for i in (range(n) if not valid.all() else ()):
         if not live[i]:
             reasons.append(f'cable {i} is slack (T = {tension[i]:.3g} N <= 0)')
         elif not converged[i]:
@@ -274,13 +320,14 @@ def solve(cables: CableSet, max_iterations: int = 60,
                          valid, tuple(reasons))
 
 
-def _jacobian(force, l0, ea, gamma, up, row_scale) -> np.ndarray:
+def _jacobian(force, l0, ea, gamma, up, row_scale, parts: _Parts | None = None
+              ) -> np.ndarray:
     """(n, 4, 4) derivative of (end position, row_scale |F|) with respect to (F, L0).
 
     d l = C dF + (1/EA + 1/T_A) (F - gamma L0 e) dL0 (C of :func:`flexibility`; F - gamma L0 e
-    is the tension vector at A) and d|F| = F.dF/|F|.
+    is the tension vector at A) and d|F| = F.dF/|F|; ``parts`` those of (F, L0) if known.
     """
-    r = _parts(force, l0, gamma, up)
+    r = _parts(force, l0, gamma, up) if parts is None else parts
     jac = np.zeros(force.shape[:-1] + (4, 4))
     jac[..., :3, :3] = flexibility(force, l0, ea, gamma, up, r)
     tangent_a = force - (gamma * l0)[..., None] * up            # d l / d L0 (tension at A)
@@ -312,15 +359,21 @@ def tension_sensitivity(state: CatenaryState, cables: CableSet) -> tuple[np.ndar
 
 
 def _newton(force, l0, res, norm, tol, live, target, t_safe, ea, gamma, up, scale,
-            max_iterations, max_halvings=30):
-    """Damped Newton iterations of :func:`solve` (vectorised over cables)."""
+            max_iterations, max_halvings=30, parts=None):
+    """Damped Newton iterations of :func:`solve` (vectorised over cables).
+
+    ``parts``: :func:`_parts` of the starting (F, L0) or None; returned likewise for the final
+    state (None where it is not known: the caller computes them), so that one evaluation per
+    iteration serves the residual, the next Jacobian and the final tensions."""
     n = force.shape[0]
     iterations = 0
     for iterations in range(1, max_iterations + 1):
         todo = live & (norm > tol)
         if not np.any(todo):
             break
-        jac = _jacobian(force, l0, ea, gamma, up, scale / t_safe)
+        if parts is None:
+            parts = _parts(force, l0, gamma, up)
+        jac = _jacobian(force, l0, ea, gamma, up, scale / t_safe, parts)
         ok = todo & np.all(np.isfinite(jac), axis=(1, 2))
         step = np.zeros((n, 4))
         for i in ([ok] if np.any(ok) else []):
@@ -335,12 +388,13 @@ def _newton(force, l0, res, norm, tol, live, target, t_safe, ea, gamma, up, scal
         alpha = np.ones(n)
         new_force, new_l0, new_res = force, l0, res
         improve = np.zeros(n, dtype=bool)
-        for _ in range(max_halvings):
+        whole = None      # the parts of the first full step where every cable takes it
+        for halving in range(max_halvings):
             trial_f = force + alpha[:, None] * step[:, :3]
             trial_l = l0 + alpha * step[:, 3]
-            trial_r = _residual(trial_f, np.where(trial_l > 0, trial_l, l0), target, t_safe, ea,
-                                gamma, up, scale)
-            trial_n = np.linalg.norm(trial_r, axis=1)
+            trial_r, trial_p = _residual(trial_f, np.where(trial_l > 0, trial_l, l0), target,
+                                         t_safe, ea, gamma, up, scale)
+            trial_n = _row_norm(trial_r)
             good = ok & ~improve & (trial_l > 0) & np.isfinite(trial_n) & (
                 (trial_n < norm) | (trial_n <= tol))
             new_force = np.where(good[:, None], trial_f, new_force)
@@ -348,13 +402,15 @@ def _newton(force, l0, res, norm, tol, live, target, t_safe, ea, gamma, up, scal
             new_res = np.where(good[:, None], trial_r, new_res)
             improve |= good
             if np.all(improve | ~ok):
+                # all at the first trial: cables without a step (step 0) sit where they were
+                whole = trial_p if halving == 0 else None
                 break
             alpha = np.where(improve, alpha, 0.5 * alpha)
         if not np.any(improve):
             break
-        force, l0, res = new_force, new_l0, new_res
-        norm = np.linalg.norm(res, axis=1)
-    return force, l0, res, iterations
+        force, l0, res, parts = new_force, new_l0, new_res, whole
+        norm = _row_norm(res)
+    return force, l0, res, iterations, parts
 
 
 # --------------------------------------------------------------------------- models
@@ -372,14 +428,23 @@ def _placeholder(cables: CableSet) -> np.ndarray:
                             placeholder_tension(cables) / length)
 
 
-def _stiffness(force, l0, cables, ok) -> np.ndarray:
+def _stiffness(force, l0, cables, ok, parts: _Parts | None = None) -> np.ndarray:
+    """K = C^-1 (symmetrised) where ``ok``, the placeholder spring elsewhere; ``parts`` of
+    (force, l0) where the caller has them."""
     up, gamma = up_and_weight(cables)
+    if ok.all():
+        stiffness = np.linalg.inv(flexibility(force, l0, cables.ea_n, gamma, up, parts))
+        return 0.5 * (stiffness + np.swapaxes(stiffness, -1, -2))
     stiffness = _placeholder(cables)
     if np.any(ok):
         flex = flexibility(force[ok], l0[ok], cables.ea_n, gamma, up)
         stiffness[ok] = np.linalg.inv(flex)
         stiffness[ok] = 0.5 * (stiffness[ok] + np.swapaxes(stiffness[ok], -1, -2))
     return stiffness
+
+
+#: Newton tolerance of the paper catenary's existence test (:func:`solve`: same verdicts)
+EXISTENCE_TOLERANCE = 1e-10
 
 
 def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
@@ -392,8 +457,9 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     tension = np.asarray(cables.tension_n, dtype=float)
     length = cables.length_m
     force = -tension[:, None] * cables.unit
-    t_min = tensions(force, length, gamma, up)[2]
-    exists = solve(cables).valid if gamma > 0 else tension > 0
+    parts = _parts(force, length, gamma, up)
+    t_min = parts.min_tension
+    exists = solve(cables, tolerance=EXISTENCE_TOLERANCE).valid if gamma > 0 else tension > 0
     ok = (tension > 0) & (t_min > 1e-6 * np.abs(tension)) & exists
     warnings = []
     for i in np.flatnonzero(~ok):
@@ -407,7 +473,7 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
         else:
             warnings.append(f'cable {i} is slack: tension {tension[i]:.3g} N at the platform '
                             f'cannot hold the {gamma * length[i]:.3g} N cable hanging below it')
-    return massless_assembly('catenary', _stiffness(force, length, cables, ok),
+    return massless_assembly('catenary', _stiffness(force, length, cables, ok, parts),
                              tension[:, None] * cables.unit, bool(np.all(ok)), warnings)
 
 

@@ -20,9 +20,10 @@ branch choice; z cot z = 1 - z^2/3 - z^4/45 - ... gives the static springs EA/L 
 lam = 0. This is the n -> infinity limit of ``fem`` (element stiffness EA/l and T/l, l = L/n,
 consistent mass), whose end stiffness and natural frequencies converge to it as n^-2.
 
-There are no finite matrices (``blocks`` is None): natural frequencies come from the roots of
-det Z(omega) of the condensed platform dynamic stiffness, found by the Wittrick-Williams
-algorithm in :func:`natural_frequencies_dsm`.
+There are no finite matrices (``blocks`` is None): natural frequencies and classified modes
+come from Wittrick-Williams counting on the condensed platform dynamic stiffness, with the
+cables' fixed-end modes (:meth:`ContinuousCables.fixed_end_mode_count`) as J0
+(:mod:`cdpr_dynamics.modes`).
 
 Valid while the cables are taut and their sag negligible; a cable with T <= 0 is flagged
 (``valid`` False), its transverse stiffness taken as the T -> 0 limit 0 (T = 0) or the
@@ -32,23 +33,91 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
-from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse,
-                                       slack_warnings)
+from cdpr_dynamics.models.base import (AxialTransverse, CableAssembly, CableSet,
+                                       axial_transverse, slack_warnings)
 
 _SERIES_BELOW = 1e-3     # |z| below which z cot z is summed as its series
 _LARGE_IMAG = 30.0       # |Im z| above which cot z uses exp(2iz) (cos, sin would overflow)
 
 
 def z_cot_z(z2) -> np.ndarray:
-    """``z cot z`` as a function of ``z2 = z^2`` (complex, any shape), stable everywhere.
+    """``z cot z`` as a function of ``z2 = z^2`` (any shape), stable everywhere.
 
-    Series 1 - z^2/3 - z^4/45 - 2 z^6/945 near 0; cos/sin elsewhere; for |Im z| large
-    cot z = i (1 + q)/(q - 1), q = exp(2iz), |q| < e^-60, which never overflows.
-    Infinite (a pole) where sin z = 0, z = j pi.
+    Real ``z2`` (undamped) in real arithmetic: z / tan z (z^2 >= 0) or y coth y = y + 2y /
+    expm1(2y) (z^2 = -y^2 < 0). Complex ``z2`` (damped): z = x + iy (y >= 0) by a real square
+    root and cot z = (sin x cos x - i sinh y cosh y) / (sin^2 x + sinh^2 y) (three real
+    transcendental calls, no cancellation near 0); for y large cot z = i (1 + q)/(q - 1),
+    q = exp(2iz), |q| < e^-60, which never overflows. Series 1 - z^2/3 - z^4/45 - 2 z^6/945
+    near 0. Infinite (a pole) where sin z = 0, z = j pi. Real in, real out.
     """
+    z2 = np.asarray(z2)
+    if z2.dtype.kind != 'c':
+        return _z_cot_z_real(z2.astype(float))
+    return _z_cot_z_complex(z2)
+
+
+def _z_cot_z_real(z2: np.ndarray) -> np.ndarray:
+    """:func:`z_cot_z` of real z^2."""
+    root = np.sqrt(np.abs(z2))
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        if np.all(z2 >= 0.0):
+            out = root / np.tan(root)
+        else:
+            out = np.empty_like(z2)
+            pos = z2 >= 0.0
+            out[pos] = root[pos] / np.tan(root[pos])
+            y = root[~pos]
+            out[~pos] = y + 2.0 * y / np.expm1(2.0 * y)
+    small = np.abs(z2) < _SERIES_BELOW ** 2
+    if small.any():
+        out[small] = _series(z2[small])
+    return out
+
+
+def _z_cot_z_complex(z2: np.ndarray) -> np.ndarray:
+    """:func:`z_cot_z` of complex z^2, real arithmetic but for the large-Im z branch."""
+    a, b = z2.real, z2.imag
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        norm2 = a * a + b * b
+        norm = np.sqrt(norm2)
+        if not np.all(np.isfinite(norm)):                    # |z2| > 1e154: no squares
+            norm = np.hypot(a, b)
+        t = np.sqrt(0.5 * (norm + np.abs(a)))                # z = x + iy = sqrt(z2), y >= 0
+        h = 0.5 * np.abs(b) / t
+        pos = a >= 0.0
+        x = np.copysign(np.where(pos, t, h), b)
+        y = np.where(pos, h, t)
+        s, c = np.sin(x), np.cos(x)
+        e = np.expm1(y)
+        sh = e * (e + 2.0) / (2.0 * (e + 1.0))                # sinh y
+        shch = sh * (sh + 1.0 / (e + 1.0))                     # sinh y cosh y
+        sc = s * c
+        den = s * s + sh * sh
+        out = np.empty(z2.shape, dtype=complex)
+        out.real = (x * sc + y * shch) / den
+        out.imag = (y * sc - x * shch) / den
+    large = y > _LARGE_IMAG
+    if large.any():
+        zl = x[large] + 1j * y[large]
+        q = np.exp(2j * zl)
+        out[large] = zl * 1j * (1.0 + q) / (q - 1.0)
+    small = norm < _SERIES_BELOW ** 2
+    if small.any():
+        out[small] = _series(z2[small])
+    return out
+
+
+def _series(z2):
+    return 1.0 - z2 / 3.0 - z2 * z2 / 45.0 - 2.0 * z2 ** 3 / 945.0
+
+
+def z_cot_z_reference(z2) -> np.ndarray:
+    """The former complex formula of :func:`z_cot_z` (complex sqrt, cos, sin): the reference
+    ``cdpr_bench`` times the real-arithmetic one against."""
     z2 = np.asarray(z2, dtype=complex)
     z = np.sqrt(z2)
     z = np.where(z.imag < 0.0, -z, z)        # z cot z is even: take Im z >= 0
@@ -56,8 +125,7 @@ def z_cot_z(z2) -> np.ndarray:
     small = np.abs(z) < _SERIES_BELOW
     large = ~small & (z.imag > _LARGE_IMAG)
     mid = ~small & ~large
-    zs = z2[small]
-    out[small] = 1.0 - zs / 3.0 - zs * zs / 45.0 - 2.0 * zs ** 3 / 945.0
+    out[small] = _series(z2[small])
     zm = z[mid]
     with np.errstate(divide='ignore', invalid='ignore'):
         out[mid] = zm * np.cos(zm) / np.sin(zm)
@@ -80,25 +148,40 @@ class ContinuousCables:
     tension_n: np.ndarray     # (n,)
     ea_n: float
     mass_per_length_kg_m: float
+    wave: Callable[[np.ndarray], np.ndarray] = z_cot_z     # z cot z of z^2
 
     def axial(self, lam) -> np.ndarray:
         """(nl, n) exact axial end stiffness (EA/L) z cot z, z^2 = lam mu L^2 / EA."""
-        lam = np.asarray(lam, dtype=complex).reshape(-1, 1)
-        length = self.length_m
-        return (self.ea_n / length) * z_cot_z(lam * (self.mass_per_length_kg_m * length ** 2
-                                                     / self.ea_n))
+        return self._waves(lam, np.full(self.length_m.shape, self.ea_n)).T.astype(complex)
 
     def transverse(self, lam) -> np.ndarray:
         """(nl, n) exact transverse end stiffness (T/L) z cot z, z^2 = lam mu L^2/T; 0 at T = 0."""
-        lam = np.asarray(lam, dtype=complex).reshape(-1, 1)
-        length, tension = self.length_m, self.tension_n
-        zero = tension == 0.0
-        safe = np.where(zero, 1.0, tension)
-        value = (safe / length) * z_cot_z(lam * (self.mass_per_length_kg_m * length ** 2 / safe))
-        return np.where(zero, 0.0, value)
+        return self._waves(lam, self.tension_n).T.astype(complex)
+
+    def parts(self, lam) -> np.ndarray:
+        """(2, n, nl) axial and transverse end stiffness, frequency last (real for real lam):
+        the :class:`cdpr_dynamics.models.base.AxialTransverse` of these cables."""
+        return self._waves(lam, np.stack([np.full(self.length_m.shape, self.ea_n),
+                                          self.tension_n]))
+
+    def _waves(self, lam, stiffness) -> np.ndarray:
+        """(stiffness/L) z cot z, z^2 = lam mu L^2 / stiffness, for ``stiffness`` (..., n) and
+        ``lam`` (nl,): (..., n, nl); 0 where the stiffness is 0."""
+        lam = np.ravel(lam)
+        if lam.dtype.kind != 'c':
+            lam = lam.astype(float)
+        zero = stiffness == 0.0
+        safe = np.where(zero, 1.0, stiffness)
+        length = self.length_m
+        out = (safe / length)[..., None] * self.wave(
+            lam * (self.mass_per_length_kg_m * length ** 2 / safe)[..., None])
+        if zero.any():
+            out[zero] = 0.0
+        return out
 
     def __call__(self, lam) -> np.ndarray:
-        return axial_transverse(self.unit, self.axial(lam), self.transverse(lam))
+        parts = self.parts(lam)
+        return axial_transverse(self.unit, parts[0].T, parts[1].T).astype(complex)
 
     def fixed_end_fundamentals_rad_s(self) -> tuple[np.ndarray, np.ndarray]:
         """(axial, transverse) first fixed-fixed circular frequencies pi c / L of each cable.
@@ -113,11 +196,11 @@ class ContinuousCables:
                                   math.pi * np.sqrt(self.tension_n / mu) / self.length_m, np.nan)
         return axial, transverse
 
-    def fixed_end_mode_count(self, omega_rad_s) -> np.ndarray:
+    def fixed_end_mode_count(self, omega_rad_s, per_cable: bool = False) -> np.ndarray:
         """J0: how many natural frequencies of the cables, both ends fixed, lie below omega.
 
         Cable i contributes #{j >= 1 : j w_a < omega} + 2 #{j >= 1 : j w_t < omega}.
-        ``omega_rad_s`` (nw,) -> (nw,) int.
+        ``omega_rad_s`` (nw,) -> (nw,) int, or (nw, n) per cable.
         """
         omega = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))[:, None]
         axial, transverse = self.fixed_end_fundamentals_rad_s()
@@ -127,7 +210,8 @@ class ContinuousCables:
         def below(fundamental):
             return np.maximum(np.ceil(omega / fundamental) - 1.0, 0.0)
 
-        return (below(axial) + 2.0 * below(transverse)).sum(axis=1).astype(int)
+        counts = (below(axial) + 2.0 * below(transverse)).astype(int)
+        return counts if per_cable else counts.sum(axis=1)
 
 
 def build(cables: CableSet, elements_per_cable: int = 0) -> CableAssembly:
@@ -139,76 +223,5 @@ def build(cables: CableSet, elements_per_cable: int = 0) -> CableAssembly:
     if not members.mass_per_length_kg_m > 0.0:
         raise ValueError('dsm needs cables with mass (weight_per_length and gravity > 0)')
     return CableAssembly('dsm', 0, members, cables.tension_n[:, None] * cables.unit, None,
-                         valid=not warnings, warnings=warnings)
-
-
-# --------------------------------------------------------------------------- Wittrick-Williams
-
-def mode_count(system, omega_rad_s) -> np.ndarray:
-    """Wittrick-Williams J(omega): the number of natural frequencies below each omega.
-
-    J = J0 + s{Z(omega)}, J0 the cables' fixed-end modes below omega and s{Z} the number of
-    negative eigenvalues of the real symmetric undamped condensed dynamic stiffness.
-    """
-    omega = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
-    z = system.dynamic_stiffness(omega).real
-    z = 0.5 * (z + np.swapaxes(z, -1, -2))
-    scale = np.abs(z).max(axis=(1, 2), keepdims=True)
-    z = z / np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
-    negative = (np.linalg.eigvalsh(z) < 0.0).sum(axis=1)
-    return system.assembly.end_stiffness.fixed_end_mode_count(omega) + negative
-
-
-def natural_frequencies_dsm(system, count: int | None = 12, f_max_hz: float | None = None,
-                            tol_hz: float = 1e-9) -> np.ndarray:
-    """Natural frequencies (Hz, ascending) of a ``dsm`` system by Wittrick-Williams bisection.
-
-    Without ``f_max_hz``: the ``count`` lowest. With ``f_max_hz``: every natural frequency
-    below it (at most the ``count`` lowest of them unless ``count`` is None). Each is bracketed
-    by bisection on the mode count J(omega) (:func:`mode_count`) to within ``tol_hz``, so none
-    is missed or doubled, repeated ones (equal cables) appear with their multiplicity, and
-    modes of the cables that do not move the platform are included. A system with negative
-    stiffness (unstable) gives 0 Hz for those modes, as :func:`natural_frequencies` does.
-
-    Raises :class:`cdpr_dynamics.dynamics.DynamicsError` for a model that cannot count its
-    cables' fixed-end modes (not ``dsm``) or a cable with T <= 0 (the count is infinite).
-    """
-    from cdpr_dynamics.dynamics import DynamicsError
-
-    members = system.assembly.end_stiffness
-    if not hasattr(members, 'fixed_end_mode_count'):
-        raise DynamicsError(f'method {system.assembly.method} has neither finite matrices nor '
-                            'a fixed-end mode count: no natural frequencies')
-    if np.any(~(np.asarray(members.tension_n) > 0.0)):
-        raise DynamicsError('dsm natural frequencies need every cable taut (T > 0): '
-                            + '; '.join(system.assembly.warnings))
-    if not tol_hz > 0.0:
-        raise ValueError('tol_hz must be positive')
-    two_pi = 2.0 * math.pi
-    if f_max_hz is not None:
-        hi_w = two_pi * float(f_max_hz)
-        total = int(mode_count(system, hi_w)[0]) if hi_w > 0 else 0
-        targets = total if count is None else min(int(count), total)
-    else:
-        if count is None:
-            raise ValueError('give count or f_max_hz')
-        targets = int(count)
-        hi_w = two_pi
-        while mode_count(system, hi_w)[0] < targets:
-            hi_w *= 2.0
-            if hi_w > two_pi * 1e12:
-                raise DynamicsError('mode count does not grow: no natural frequencies found')
-    if targets <= 0:
-        return np.zeros(0)
-    index = np.arange(1, targets + 1)              # find w_k = inf{w : J(w) >= k}
-    lo = np.zeros(targets)
-    hi = np.full(targets, hi_w)
-    tol_w = two_pi * tol_hz
-    for _ in range(200):
-        if np.all(hi - lo <= np.maximum(tol_w, 4.0 * np.finfo(float).eps * hi)):
-            break
-        mid = 0.5 * (lo + hi)
-        enough = mode_count(system, mid) >= index
-        hi = np.where(enough, mid, hi)
-        lo = np.where(enough, lo, mid)
-    return 0.5 * (lo + hi) / two_pi
+                         valid=not warnings, warnings=warnings,
+                         decoupled=AxialTransverse(members.unit, members.parts))

@@ -16,22 +16,37 @@ eliminating the nodes one by one from the anchor (Schur complement of a tridiago
     S_1 = d11,   S_k = d11 - d12^2 / (S_{k-1} + d11),
     d11 = k - lam 2 mu l / 6,   d12 = -k - lam mu l / 6,
 
-vectorised over frequencies and cables: O(n) per frequency instead of a dense solve.
+(:func:`chain_end_stiffness_recursive`, O(n) per frequency). The recursion is a linear
+recurrence with constant coefficients, so it has a closed form (:func:`chain_end_stiffness`):
+with r = cos(theta) = -d11/d12,
+
+    S_n = d11 + d12 sin((n-1) theta) / sin(n theta) = -d12 T_n(r) / U_{n-1}(r)
+        = -d12 sqrt(q) (z^-n + z^n) / (z^-n - z^n),   q = r^2 - 1,  z = e^{i theta},
+
+T and U the Chebyshev polynomials. It is evaluated without trigonometric functions or square
+roots from V_m = z^m + z^-m = 2 T_m(r) and U_{m-1} by binary powering,
+
+    V_2m = V_m^2 - 2,   U_2m-1 = U_m-1 V_m,   V_m+1 = r V_m + 2 q U_m-1,   U_m = r U_m-1 + V_m/2,
+
+from V_1 = 2r, U_0 = 1 and q = -3c(2k - c)/d12^2 (c = lam mu l/6, no cancellation near
+lam = 0): log2(n) steps, the same in the pass band (|r| <= 1, z on the unit circle) and the
+stop band, real for real lam and complex for damped lam, vectorised over frequencies and cables.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from cdpr_dynamics.models.base import (CableAssembly, CableSet, ChainBlocks, axial_transverse,
-                                       slack_warnings)
+from cdpr_dynamics.models.base import (AxialTransverse, CableAssembly, CableSet, ChainBlocks,
+                                       axial_transverse, slack_warnings)
 
 
-def chain_end_stiffness(k_element: np.ndarray, m_element: np.ndarray, n: int,
-                        lam: np.ndarray) -> np.ndarray:
-    """End dynamic stiffness of uniform scalar chains of n elements fixed at the far end.
+def chain_end_stiffness_recursive(k_element: np.ndarray, m_element: np.ndarray, n: int,
+                                  lam: np.ndarray) -> np.ndarray:
+    """End dynamic stiffness of uniform scalar chains by the O(n) recursion (module doc).
 
-    ``k_element`` and ``m_element`` (element stiffness and mass mu l) broadcast over the cables,
-    ``lam`` (nl,) complex: result (nl, ...) complex.
+    The reference :func:`chain_end_stiffness` is tested against and ``cdpr_bench`` times it
+    against. ``k_element`` and ``m_element`` (element stiffness and mass mu l) broadcast over
+    the cables, ``lam`` (nl,) complex: result (nl, ...) complex.
     """
     lam = np.asarray(lam, dtype=complex).reshape((-1,) + (1,) * np.ndim(k_element))
     d11 = k_element - lam * (2.0 * m_element / 6.0)
@@ -47,6 +62,78 @@ def chain_end_stiffness(k_element: np.ndarray, m_element: np.ndarray, n: int,
     return s
 
 
+def chain_end_stiffness(k_element: np.ndarray, m_element: np.ndarray, n: int,
+                        lam: np.ndarray) -> np.ndarray:
+    """End dynamic stiffness S_n of uniform scalar chains of n elements fixed at the far end.
+
+    Closed form -d12 T_n(r)/U_{n-1}(r) (module doc), cost independent of n. ``k_element``
+    (N/m) and ``m_element`` (element mass mu l, kg) broadcast over the cables, ``lam`` (nl,)
+    (1/s^2): result (nl, ...), real for real ``lam``, complex for complex ``lam``. Agrees with
+    :func:`chain_end_stiffness_recursive`, inf at an exact pole, 0 where k = 0 at lam = 0.
+    """
+    k = np.asarray(k_element, dtype=float)
+    m = np.asarray(m_element, dtype=float)
+    shape = np.broadcast_shapes(k.shape, m.shape)
+    out = chain_end_stiffness_last(np.broadcast_to(k, shape), np.broadcast_to(m, shape), n,
+                                   np.ravel(lam))
+    return np.moveaxis(out, -1, 0)
+
+
+def chain_end_stiffness_last(k_element: np.ndarray, m_element: np.ndarray, n: int,
+                             lam: np.ndarray) -> np.ndarray:
+    """:func:`chain_end_stiffness` with the frequency axis last: ``k_element``, ``m_element``
+    (...) and ``lam`` (nl,) give (..., nl), the layout whose elementwise work is contiguous."""
+    lam = np.asarray(lam)
+    if lam.dtype.kind != 'c':
+        lam = lam.astype(float)
+    k = np.asarray(k_element, dtype=float)[..., None]
+    c = lam * (np.asarray(m_element, dtype=float)[..., None] / 6.0)     # lam m / 6
+    with np.errstate(all='ignore'):       # poles, d12 = 0 and overflow: fixed below
+        d11 = k - 2.0 * c
+        d12 = -k - c
+        inv = 1.0 / d12
+        r = d11 * inv
+        r *= -1.0
+        q = 2.0 * k - c                   # q = (d11 - d12)(d11 + d12)/d12^2
+        q *= c
+        q *= -3.0
+        q *= inv
+        q *= inv
+        v = 2.0 * r                       # V_1 = 2 r, U_0 = 1
+        u = np.ones_like(r)
+        for bit in bin(int(n))[3:]:
+            u *= v                        # U_2m-1 = U_m-1 V_m
+            v *= v
+            v -= 2.0                      # V_2m = V_m^2 - 2
+            if bit == '1':
+                step = q * u
+                step *= 2.0
+                step += r * v             # V_m+1 = r V_m + 2 q U_m-1
+                u *= r
+                v *= 0.5
+                u += v                    # U_m = r U_m-1 + V_m / 2
+                v = step
+        bad = ~(np.isfinite(u) & np.isfinite(v)) | (u == 0)
+        v /= u
+        v *= d12
+        v *= -0.5                         # S_n = -d12 V_n / (2 U_n-1)
+        if bad.any():
+            v[bad] = _chain_special(d11[bad], d12[bad], r[bad], q[bad], u[bad])
+    return v
+
+
+def _chain_special(d11, d12, r, q, u):
+    """S_n where the powering cannot give it: a decoupled chain (d12 = 0: S = d11, so 0 for
+    k = 0 at lam = 0), an exact pole (U_n-1 = 0: inf) and overflow deep in the stop band
+    (|z|^n beyond the float range: the semi-infinite chain -d12 sqrt(q), |r + sqrt(q)| > 1)."""
+    root = np.sqrt(q.astype(complex))
+    root = np.where(np.abs(r + root) < np.abs(r - root), -root, root)
+    out = -d12 * root
+    out = np.where(u == 0, np.inf, out)
+    out = np.where(d12 == 0, d11, out)
+    return out if np.iscomplexobj(d11) else out.real
+
+
 def uniform_chain_blocks(unit, k_axial, k_transverse, m_element, n) -> ChainBlocks:
     """Block-tridiagonal matrices of straight uniform chains of n elements (anchor fixed)."""
     ke = axial_transverse(unit, k_axial, k_transverse)               # (ncab, 3, 3)
@@ -60,8 +147,13 @@ def uniform_chain_blocks(unit, k_axial, k_transverse, m_element, n) -> ChainBloc
     return ChainBlocks(k_diag, k_off, m_diag, m_off)
 
 
-def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
-    """The paper's FEM with ``elements_per_cable`` elements per cable."""
+def build(cables: CableSet, elements_per_cable: int = 16,
+          reference: bool = False) -> CableAssembly:
+    """The paper's FEM with ``elements_per_cable`` elements per cable.
+
+    ``reference``: the end stiffness by :func:`chain_end_stiffness_recursive` and no
+    axial/transverse shortcut (the previous code path, for tests and ``cdpr_bench``).
+    """
     n = int(elements_per_cable)
     if n < 1:
         raise ValueError('fem needs at least one element per cable')
@@ -72,11 +164,17 @@ def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
     unit = cables.unit
     warnings = slack_warnings(cables.tension_n)
 
-    def end_stiffness(lam):
-        axial = chain_end_stiffness(k_axial, m_element, n, lam)
-        transverse = chain_end_stiffness(k_transverse, m_element, n, lam)
-        return axial_transverse(unit, axial, transverse)
+    blocks = uniform_chain_blocks(unit, k_axial, k_transverse, m_element, n)
+    if reference:
+        def end_stiffness(lam):
+            axial = chain_end_stiffness_recursive(k_axial, m_element, n, lam)
+            transverse = chain_end_stiffness_recursive(k_transverse, m_element, n, lam)
+            return axial_transverse(unit, axial, transverse)
 
-    return CableAssembly('fem', n, end_stiffness, cables.tension_n[:, None] * unit,
-                         uniform_chain_blocks(unit, k_axial, k_transverse, m_element, n),
-                         valid=not warnings, warnings=warnings)
+        return CableAssembly('fem', n, end_stiffness, cables.tension_n[:, None] * unit, blocks,
+                             valid=not warnings, warnings=warnings)
+    k_both = np.stack([np.broadcast_to(k_axial, k_transverse.shape), k_transverse])  # (2, n)
+    m_both = np.broadcast_to(m_element, k_both.shape)
+    chains = AxialTransverse(unit, lambda lam: chain_end_stiffness_last(k_both, m_both, n, lam))
+    return CableAssembly('fem', n, chains.end_stiffness, cables.tension_n[:, None] * unit, blocks,
+                         valid=not warnings, warnings=warnings, decoupled=chains)

@@ -267,6 +267,17 @@ class Recorder:
             self._last_discovery = now
             self._discover()
 
+    def poll(self) -> None:
+        """For a recorder whose node no executor spins (its callbacks and timer never run):
+        take everything waiting on each subscription, close an old chunk, discover new
+        publishers. Called every few tens of ms (queues deep enough for the gap), it wakes its
+        thread once per call instead of once per message (``cdpr_demo`` does this). Up to
+        ``_TAKE_BATCH`` messages per topic and call."""
+        for topic in list(self._topics.values()):
+            if topic.subscription is not None and not self._closed:
+                self._take_more(topic)
+        self._on_tick()
+
     def flush(self) -> None:
         """Close the open chunk now and hand everything written to the operating system."""
         with self._lock:

@@ -1,0 +1,453 @@
+"""Wittrick-Williams counting: how many natural frequencies lie below w, and where they are.
+
+With D(lam) = K - lam M (lam = w^2) split into the platform DOFs and the cables' interior
+(both cable ends clamped), Sylvester's law of inertia gives the number of natural frequencies
+below w
+
+    J(lam) = J0(lam) + s{Z(lam)},
+
+J0 the eigenvalues of the clamped interiors below lam and s{Z} the negative eigenvalues of
+the undamped condensed dynamic stiffness Z(lam) = D_pp - D_pi D_ii^-1 D_ip on the platform DOFs
+(:meth:`PlatformSystem.dynamic_stiffness`). J0 is closed form for ``fem``'s uniform chains
+(n elements, clamped: lam_j = (6k/m)(1 - cos(j pi/n))/(2 + cos(j pi/n)), j = 1..n-1, axial
+k = EA/l and twice transverse k = T/l, m = mu l) and for ``dsm`` (j pi c / L); for ``fem_sag``
+(or any :class:`ChainBlocks`) the negative pivots of the block LDL^T of each chain's
+K_ii - lam M_ii, whose last step is also the chain's end stiffness. Every frequency is
+bracketed by multisection on J (all brackets at once) to :data:`TOL_HZ`; a bracket narrower
+than that with J rising by m is a frequency of multiplicity m (exact, no splitting). The
+interiors also give their clamped modes (the chains' end motion in them), which
+:mod:`cdpr_dynamics.modes` needs where a mode leaves the platform at rest.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.linalg
+
+from cdpr_dynamics.dynamics import DynamicsError, PlatformSystem
+from cdpr_dynamics.models.dsm import ContinuousCables
+
+TOL_HZ = 1e-9           # brackets of the counted frequencies (Hz)
+SECTIONS = 5            # points per bracket and sweep of the multisection
+_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))   # symmetric 3x3 components
+_GUARDS = np.array([1e-2, 1e-3, 1e-5, 1e-9])   # brackets around a guess (of the width)
+
+
+def counter(system: PlatformSystem) -> 'Counter | None':
+    """The Wittrick-Williams counter of ``system``, or None (no cable DOFs: dense is exact)."""
+    assembly = system.assembly
+    if assembly.blocks is None:
+        members = assembly.end_stiffness
+        if not isinstance(members, ContinuousCables):
+            raise DynamicsError(f'method {assembly.method} has neither finite matrices nor a '
+                                'fixed-end mode count: no natural frequencies')
+        if np.any(~(np.asarray(members.tension_n) > 0.0)):
+            raise DynamicsError('dsm natural frequencies need every cable taut (T > 0): '
+                                + '; '.join(assembly.warnings))
+        return Counter(system, _ContinuousInterior(members))
+    if assembly.blocks.nodes < 2:
+        return None
+    if assembly.method == 'fem':
+        return Counter(system, _UniformInterior(system))
+    return Counter(system, _ChainInterior(assembly.blocks))
+
+
+class _UniformInterior:
+    """J0 of ``fem``'s uniform straight chains and their clamped eigenvalues, closed form
+    (module doc); the cables' end stiffness is the model's own (closed form too)."""
+
+    def __init__(self, system: PlatformSystem):
+        blocks = system.assembly.blocks
+        unit = system.geometry.unit
+        element = -blocks.k_off[:, 0]                                     # (ncab, 3, 3)
+        k_axial = np.einsum('ci,cij,cj->c', unit, element, unit)
+        k_transverse = 0.5 * (np.trace(element, axis1=1, axis2=2) - k_axial)
+        self.n = blocks.nodes                                             # elements
+        self.rate = np.stack([k_axial, k_transverse]) / blocks.m_off[:, 0, 0, 0]   # 6k/m
+        self.weight = np.array([1, 2])[:, None]                           # axial, transverse
+        self.m_element = 6.0 * blocks.m_off[:, 0, 0, 0]
+        self.unit = unit
+        self.blocks = blocks
+        self._planes = None
+        self.end_stiffness = system.assembly.end_stiffness
+
+    def counts(self, lam) -> np.ndarray:
+        """(nl, ncab) clamped-chain eigenvalues below each lam: lam_j < lam iff
+        cos(j pi/n) > (1 - 2r)/(1 + r), r = lam / rate, rate = 6k/m."""
+        r = np.asarray(lam, dtype=float)[:, None, None] / self.rate[None]   # (nl, 2, ncab)
+        x = np.clip((1.0 - 2.0 * r) / (1.0 + r), -1.0, 1.0)
+        below = np.clip(np.ceil(self.n * np.arccos(x) / math.pi) - 1.0, 0.0, self.n - 1)
+        return (below * self.weight[None]).sum(axis=1).astype(int)
+
+    def poles(self, lam_max: float) -> np.ndarray:
+        """Sorted clamped-chain eigenvalues lam_j = rate (1 - cos)/(2 + cos) up to lam_max."""
+        c = np.cos(np.arange(1, self.n) * math.pi / self.n)
+        values = (self.rate.ravel()[:, None] * (1.0 - c) / (2.0 + c)).ravel()
+        return np.unique(values[values <= lam_max])
+
+    def sweep(self, lam, count: bool = True):
+        """(J0 per cable, None: Z from the model) or, ``count=False``, (None, S_c(lam))."""
+        return (self.counts(lam), None) if count else (None, self.end_stiffness(lam))
+
+    def planes(self) -> np.ndarray:
+        """Bases (ncab, 3, 2) of the transverse planes, computed once."""
+        if self._planes is None:
+            self._planes = _normal_planes(self.unit)
+        return self._planes
+
+    def clamped_end(self, lam, cable: int, count: int):
+        return _chain_end(self.blocks, lam, cable, self.clamped_modes(lam, cable, count)[1])
+
+    def clamped_modes(self, lam, cable: int, count: int):
+        """The last interior node's motion (3, count) in the M-normalised clamped modes of
+        chain ``cable`` at its eigenvalue ``lam``: v sin(j pi (n-1)/n) / sqrt(m n (2 +
+        cos(j pi/n)) / 6) along the mode's direction(s) v, j from lam_j = lam."""
+        n, unit = self.n, self.unit[cable]
+        columns = []
+        for rate, directions in ((self.rate[0, cable], unit[:, None]),
+                                 (self.rate[1, cable], self.planes()[cable])):
+            c = (rate - 2.0 * lam) / (rate + lam)
+            j = n * math.acos(min(max(c, -1.0), 1.0)) / math.pi
+            if abs(j - round(j)) < 1e-6 and 1 <= round(j) <= n - 1:
+                j = round(j)
+                mass = self.m_element[cable] * n * (2.0 + math.cos(j * math.pi / n)) / 6.0
+                columns.append(directions * math.sin(j * math.pi * (n - 1) / n)
+                               / math.sqrt(mass))
+        return None, np.concatenate(columns, axis=1)[:, :count]
+
+
+class _ChainInterior:
+    """General chains (ChainBlocks, e.g. ``fem_sag``): the block LDL^T of K_ii - lam M_ii from
+    the anchor. Each interior node is first turned into the frame of its own stiffness block
+    (stiff axial direction first, an orthogonal congruence: inertia unchanged), so the scalar
+    LDL^T of each 3x3 pivot needs no pivoting and keeps the soft directions accurate; the
+    negative pivots count J0 and the last step condenses the chain onto its end (world frame):
+    S = D_ee - O^T P^-1 O."""
+
+    def __init__(self, blocks):
+        self.blocks = blocks
+        self.interior = blocks.nodes - 1
+        kd, ko, md, mo = blocks
+        _, frames = np.linalg.eigh(kd[:, :self.interior])                # ascending
+        frames = np.concatenate([frames[..., ::-1],                       # axial first
+                                 np.broadcast_to(np.eye(3), (kd.shape[0], 1, 3, 3))], axis=1)
+        ft = np.swapaxes(frames, -1, -2)
+        rows, cols = np.array(_UPPER).T
+        local_kd = (ft @ kd @ frames)[..., rows, cols]                    # (ncab, nodes, 6)
+        local_ko = (ft[:, :-1] @ ko @ frames[:, 1:]).reshape(kd.shape[0], -1, 9)
+        local_mo = (ft[:, :-1] @ mo @ frames[:, 1:]).reshape(kd.shape[0], -1, 9)
+        # per node, lists of (ncab,) components: numpy calls on small contiguous arrays
+        self._kd = [[local_kd[:, k, i].copy() for i in range(6)] for k in range(blocks.nodes)]
+        self._md = [md[:, k, 0, 0].copy() for k in range(blocks.nodes)]   # isotropic: m I
+        self._ko = [[local_ko[:, k, i].copy() for i in range(9)] for k in range(self.interior)]
+        self._mo = [[local_mo[:, k, i].copy() for i in range(9)] for k in range(self.interior)]
+
+    def poles(self, lam_max: float):
+        return None
+
+    def counts(self, lam) -> np.ndarray:
+        return self.sweep(lam)[0]
+
+    def sweep(self, lam, count: bool = True):
+        """(J0 per cable (nl, ncab) or None, end dynamic stiffness (nl, ncab, 3, 3)), and in
+        ``last_det`` the determinant of each chain's last interior pivot; complex ``lam``
+        (a complex step) with ``count=False``. Pivots as their 6 components (nl, ncab)."""
+        lam = np.asarray(lam)[:, None]                                     # (nl, 1)
+        neg = 0
+        diagonal = (True, False, False, True, False, True)
+        p = [kd - lam * self._md[0] if on else kd + 0.0 * lam
+             for kd, on in zip(self._kd[0], diagonal)]
+        for k in range(self.interior):
+            p00, p01, p02, p11, p12, p22 = p
+            l10, l20 = p01 / p00, p02 / p00
+            d1 = p11 - l10 * p01
+            l21 = (p12 - l20 * p01) / d1
+            d2 = p22 - l20 * p02 - l21 * l21 * d1
+            if count:
+                neg = neg + (p00.real < 0).astype(int) + (d1.real < 0) + (d2.real < 0)
+                self.last_det = p00 * d1 * d2    # 0 at the chain's clamped eigenvalues
+            b = [ko - lam * mo for ko, mo in zip(self._ko[k], self._mo[k])]
+            y0 = b[0:3]
+            y1 = [b[3 + j] - l10 * y0[j] for j in range(3)]
+            y2 = [b[6 + j] - l20 * y0[j] - l21 * y1[j] for j in range(3)]
+            z0, z1, z2 = [v / p00 for v in y0], [v / d1 for v in y1], [v / d2 for v in y2]
+            kd, md = self._kd[k + 1], self._md[k + 1]
+            p = [kd[n] - (lam * md if i == j else 0.0)
+                 - (y0[i] * z0[j] + y1[i] * z1[j] + y2[i] * z2[j])
+                 for n, (i, j) in enumerate(_UPPER)]
+        out = np.empty(p[0].shape + (3, 3), dtype=p[0].dtype)
+        for v, (i, j) in zip(p, _UPPER):
+            out[..., i, j] = out[..., j, i] = v
+        return (neg if count else None), out
+
+    def clamped_end(self, lam, cable: int, count: int):
+        """(end reactions (3, count), mass coupling (3, count), scale of the reactions' terms)
+        of ``count`` M-orthonormal clamped modes of chain ``cable`` at its eigenvalue ``lam``:
+        O^T psi_last, M_e,last psi_last and ||O|| ||psi_last||."""
+        return _chain_end(self.blocks, lam, cable, self.clamped_modes(lam, cable, count)[1])
+
+    def clamped_modes(self, lam: float, cable: int, count: int):
+        """``count`` M-orthonormal clamped modes of chain ``cable`` at its eigenvalue ``lam``
+        by two steps of inverse iteration (banded LU): (interior (3(n-1), count), the last
+        interior node's motion (3, count))."""
+        kd, ko, md, mo = (a[cable] for a in self.blocks)
+        ni = self.interior
+        size = 3 * ni
+        band = np.zeros((11, size))
+        i3 = np.arange(3)
+        base = 3 * np.arange(ni)[:, None, None]
+        rows, cols = base + i3[:, None], base + i3[None, :]                # (ni, 3, 3)
+        band[5 + rows - cols, cols] = kd[:ni] - lam * md[:ni]
+        if ni > 1:
+            off = ko[:ni - 1] - lam * mo[:ni - 1]
+            r, c = rows[:-1], cols[:-1] + 3
+            band[5 + r - c, c] = off
+            band[5 + c - r, r] = off
+        y = np.random.default_rng(cable).standard_normal((size, count))
+        for _ in range(2):
+            try:
+                y = scipy.linalg.solve_banded((5, 5), band, y, check_finite=False)
+            except np.linalg.LinAlgError:       # lam on the eigenvalue to the last bit
+                band[5] *= 1.0 + 1e-13
+                y = scipy.linalg.solve_banded((5, 5), band, y, check_finite=False)
+            y /= np.linalg.norm(y, axis=0)
+        gram = y.T @ _chain_mass(md, mo, ni, y)
+        y = y @ np.linalg.inv(np.linalg.cholesky(gram)).T          # M-orthonormal
+        return y, y[-3:]
+
+
+class _ContinuousInterior:
+    """J0, clamped eigenvalues and end stiffness of ``dsm``'s continuous cables."""
+
+    def __init__(self, members: ContinuousCables):
+        self.members = members
+
+    def counts(self, lam) -> np.ndarray:
+        return self.members.fixed_end_mode_count(np.sqrt(np.asarray(lam, dtype=float)),
+                                                 per_cable=True)
+
+    def poles(self, lam_max: float) -> np.ndarray:
+        """Sorted (j w_1)^2 up to lam_max, axial and transverse fundamentals w_1 = pi c/L."""
+        found = []
+        for fundamental in self.members.fixed_end_fundamentals_rad_s():
+            j = np.arange(1, int(math.sqrt(lam_max) / fundamental.min()) + 1)
+            found.append(((j[None, :] * fundamental[:, None]) ** 2).ravel())
+        values = np.concatenate(found)
+        return np.unique(values[values <= lam_max])
+
+    def sweep(self, lam, count: bool = True):
+        """(J0 per cable, None: Z from the model) or, ``count=False``, (None, S_c(lam))."""
+        return (self.counts(lam), None) if count else (None, self.members(lam))
+
+    def clamped_end(self, lam, cable: int, count: int):
+        force = _continuous_clamped_end(self.members, lam, cable, count)
+        return force, np.zeros_like(force), float(np.abs(force).max())
+
+
+def _chain_end(blocks, lam, cable: int, last):
+    """(O^T last, M_e,last last, ||O|| ||last||) for the last interior node's motion ``last``
+    (3, k) of chain ``cable``, O its last element's dynamic-stiffness block at ``lam``."""
+    _, ko, _, mo = blocks
+    off = ko[cable, -1] - lam * mo[cable, -1]
+    return off.T @ last, mo[cable, -1].T @ last, \
+        float(np.linalg.norm(off) * np.linalg.norm(last, axis=0).max())
+
+
+def _chain_mass(md, mo, interior, y) -> np.ndarray:
+    """M_ii y for one chain's block-tridiagonal mass over its interior nodes."""
+    y3 = y.reshape(interior, 3, -1)
+    out = np.einsum('kij,kjr->kir', md[:interior], y3)
+    if interior > 1:
+        out[:-1] += np.einsum('kij,kjr->kir', mo[:interior - 1], y3[1:])
+        out[1:] += np.einsum('kji,kjr->kir', mo[:interior - 1], y3[:-1])
+    return out.reshape(y.shape)
+
+
+class Counter:
+    """J(lam) = J0(lam) + s{Z(lam)} of one system and the brackets of its frequencies."""
+
+    def __init__(self, system: PlatformSystem, interior):
+        self.system = system
+        self.interior = interior
+        self.nd = system.platform_dofs
+        blocks = system.assembly.blocks
+        self.blocks = blocks
+
+    # ---------------------------------------------------------------- Z and the count
+    def z(self, lam, ends=None) -> np.ndarray:
+        """Real undamped Z(lam) (nl, nd, nd) from the cables' S_c(lam) (None: the system's
+        own :meth:`PlatformSystem.dynamic_stiffness`), symmetrised."""
+        s = self.system
+        if ends is None:
+            z = s.dynamic_stiffness(np.sqrt(lam)).real
+        else:
+            z = s.platform_stiffness[None] - lam[:, None, None] * s.platform_mass[None] \
+                + s.cables_on_platform(ends.real)
+        return 0.5 * (z + np.swapaxes(z, -1, -2))
+
+    def count(self, lam):
+        """(J (nl,), J0 per cable (nl, ncab), eigenvalues of Z ascending (nl, nd), each chain's
+        last interior pivot determinant (nl, ncab) where known, else zeros)."""
+        lam = np.asarray(lam, dtype=float)
+        j0, ends = self.interior.sweep(lam)
+        z = self.z(lam, ends)
+        bad = ~np.all(np.isfinite(z), axis=(1, 2))        # a sample exactly on a pole
+        if np.any(bad):
+            lam = np.where(bad, lam * (1.0 + 1e-13) + 1e-300, lam)
+            j0, ends = self.interior.sweep(lam)
+            z = self.z(lam, ends)
+        scale = np.abs(z).max(axis=(1, 2))
+        scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+        mu = np.linalg.eigvalsh(z / scale[:, None, None]) * scale[:, None]
+        pivot = getattr(self.interior, 'last_det', None)
+        pivot = np.zeros(j0.shape) if pivot is None else pivot
+        return j0.sum(axis=1) + (mu < 0.0).sum(axis=1), j0, mu, pivot
+
+    # ---------------------------------------------------------------- the frequencies
+    def frequencies(self, f_max_hz, count, tol_hz):
+        """(omega (g,), multiplicity (g,), bracket lo (g,), hi (g,), modes to report): every
+        distinct frequency below ``f_max_hz`` and the lowest ``count`` (the last group can hold
+        more than the report takes).
+
+        Multisection of J on all brackets at once: each sweep cuts a bracket at
+        :data:`SECTIONS` equal steps and around a guess (:meth:`_guess`) at
+        :data:`_GUARDS` of its width: a good guess ends the bracket in a sweep or two, a bad
+        one costs nothing. Brackets narrower than ``tol_hz`` are the frequencies, J's rise
+        across them their multiplicity.
+        """
+        if not tol_hz > 0.0:
+            raise ValueError('tol_hz must be positive')
+        two_pi = 2.0 * math.pi
+        total = self.system.dofs if self.blocks is not None else None
+        want = int(count or 0) if total is None else min(int(count or 0), total)
+        hi = two_pi * float(f_max_hz) if f_max_hz is not None and f_max_hz > 0 else two_pi
+        while True:     # 0, tight around every known pole (clamped chains), the top
+            poles = self.interior.poles(hi * hi)
+            poles_w = None if poles is None else np.sqrt(poles)
+            tol = max(two_pi * tol_hz, 8.0 * np.finfo(float).eps * hi)
+            cut = np.zeros(0) if poles_w is None else \
+                np.stack([poles_w - tol / 4, poles_w + tol / 4], axis=1).ravel()
+            points = np.concatenate([[0.0], cut[(cut > 0.0) & (cut < hi)], [hi]])
+            at = (points,) + self.count(points * points)
+            if at[1][-1] >= want:
+                break
+            hi *= 2.0
+            if hi > two_pi * 1e12:
+                raise DynamicsError('mode count does not grow: no natural frequencies found')
+        j_lo = int(at[1][0])
+        # a bracket's ends: omega, then J, J0 per cable, Z's eigenvalues, pivot determinants
+        at = (at[0], np.maximum.accumulate(at[1])) + at[2:]
+        keep = (at[1][1:] > at[1][:-1]) & (at[0][1:] > at[0][:-1])
+        lo = tuple(e[:-1][keep] for e in at)
+        up = tuple(e[1:][keep] for e in at)
+        found = []
+        t = np.arange(1, SECTIONS + 1) / (SECTIONS + 1)
+        while lo[0].size:
+            done = up[0] - lo[0] <= tol
+            if np.any(done):
+                found.append(np.stack([0.5 * (lo[0] + up[0]), up[1] - lo[1], lo[0], up[0]])
+                             [:, done])
+                lo, up = (tuple(a[~done] for a in x) for x in (lo, up))
+                if not lo[0].size:
+                    break
+            width = up[0] - lo[0]
+            guess = self._guess(lo, up, poles_w)
+            step = np.maximum(tol / 4, width[:, None] * _GUARDS[None])
+            points = np.concatenate([lo[0][:, None] + width[:, None] * t[None],
+                                     guess[:, None] - step, guess[:, None] + step], axis=1)
+            points = np.where(np.isfinite(points) & (points > lo[0][:, None])
+                              & (points < up[0][:, None]), points,
+                              0.5 * (lo[0] + up[0])[:, None])
+            points.sort(axis=1)
+            shape = points.shape
+            at = self.count((points * points).ravel())
+            at = (points,) + tuple(a.reshape(shape + a.shape[1:]) for a in at)
+            j = np.clip(np.maximum.accumulate(at[1], axis=1), lo[1][:, None], up[1][:, None])
+            at = (at[0], j) + at[2:]
+            edges = [np.concatenate([a[:, None], b, c[:, None]], axis=1)
+                     for a, b, c in zip(lo, at, up)]
+            keep = (edges[1][:, 1:] > edges[1][:, :-1]) & (edges[0][:, 1:] > edges[0][:, :-1])
+            lo = tuple(e[:, :-1][keep] for e in edges)
+            up = tuple(e[:, 1:][keep] for e in edges)
+        if j_lo:
+            found.insert(0, np.array([[0.0], [j_lo], [0.0], [0.0]]))
+        if not found:
+            return np.zeros(0), np.zeros(0, dtype=int), np.zeros(0), np.zeros(0), 0
+        groups = np.concatenate(found, axis=1)
+        groups = groups[:, np.argsort(groups[0], kind='stable')]
+        omega, mult = groups[0], groups[1].astype(int)
+        limit = np.inf if f_max_hz is None else two_pi * float(f_max_hz)
+        before = np.cumsum(mult) - mult          # modes below each group
+        keep = (before < want) | (omega <= limit)
+        mult = mult[keep]
+        take = int(mult.sum()) if f_max_hz is not None else min(int(mult.sum()), want)
+        return omega[keep], mult, groups[2][keep], groups[3][keep], take
+
+    @staticmethod
+    def _guess(lo, up, poles_w) -> np.ndarray:
+        """Where each bracket's lowest frequency probably is (nan: no guess).
+
+        Where J0 does not jump in the bracket: the regula falsi of the eigenvalue of Z that
+        crosses zero (times |p^2 - w^2|, p the nearest clamped-chain eigenvalue where known:
+        Z ~ c/(p^2 - w^2) there). Where it jumps: that eigenvalue (fem, dsm: closed form), or
+        the regula falsi of the jumping chain's last pivot determinant (general chains).
+        """
+        (lo_w, lo_j, lo_0, lo_mu, lo_det), (hi_w, _, hi_0, hi_mu, hi_det) = lo, up
+        jump = hi_0 - lo_0                                                  # (b, ncab)
+        smooth = ~np.any(jump, axis=1)
+        index = np.clip(lo_j - lo_0.sum(axis=1), 0, lo_mu.shape[1] - 1)[:, None]
+        f_lo = np.take_along_axis(lo_mu, index, axis=1)[:, 0]
+        f_hi = np.take_along_axis(hi_mu, index, axis=1)[:, 0]
+        if poles_w is not None and poles_w.size:
+            mid = 0.5 * (lo_w + hi_w)
+            at = np.searchsorted(poles_w, mid)
+            below = poles_w[np.maximum(at - 1, 0)]
+            above = poles_w[np.minimum(at, poles_w.size - 1)]
+            p = np.where(np.abs(below - mid) < np.abs(above - mid), below, above)
+            f_lo, f_hi = f_lo * np.abs(p * p - lo_w * lo_w), f_hi * np.abs(p * p - hi_w * hi_w)
+        valid = smooth & (f_lo >= 0) & (f_hi < 0)
+        if poles_w is None:
+            cable = np.argmax(jump, axis=1)[:, None]
+            d_lo = np.take_along_axis(lo_det, cable, axis=1)[:, 0]
+            d_hi = np.take_along_axis(hi_det, cable, axis=1)[:, 0]
+            chain = ~smooth & (d_lo * d_hi < 0)
+            f_lo, f_hi = np.where(chain, d_lo, f_lo), np.where(chain, d_hi, f_hi)
+            valid = valid | chain
+        with np.errstate(divide='ignore', invalid='ignore'):
+            guess = np.where(valid, lo_w + (hi_w - lo_w) * f_lo / (f_lo - f_hi), np.nan)
+        if poles_w is not None and poles_w.size:
+            first = poles_w[np.minimum(np.searchsorted(poles_w, lo_w, side='right'),
+                                       poles_w.size - 1)]
+            guess = np.where(~smooth & (first > lo_w) & (first < hi_w), first, guess)
+        return guess
+
+
+def _continuous_clamped_end(members: ContinuousCables, lam, cable, count) -> np.ndarray:
+    """(3, count) end reactions of a continuous cable's clamped modes at ``lam`` (mass
+    normalised sqrt(2/(mu L)) sin(j pi x/L): force k_dir sqrt(2/(mu L)) (j pi/L) along the
+    direction, k_dir = EA axially, T transversely; up to sign)."""
+    mu, length = members.mass_per_length_kg_m, members.length_m[cable]
+    unit = members.unit[cable]
+    axial, transverse = members.fixed_end_fundamentals_rad_s()
+    omega = math.sqrt(lam)
+    columns = []
+    for fundamental, stiffness, directions in (
+            (axial[cable], members.ea_n, unit[:, None]),
+            (transverse[cable], members.tension_n[cable], _normal_planes(unit[None])[0])):
+        j = omega / fundamental
+        if abs(j - round(j)) < 1e-6 and round(j) >= 1:
+            columns.append(directions * stiffness * math.sqrt(2.0 / (mu * length))
+                           * round(j) * math.pi / length)
+    return np.concatenate(columns, axis=1)[:, :count]
+
+
+def _normal_planes(unit) -> np.ndarray:
+    """(n, 3, 2) orthonormal bases of the planes normal to the unit vectors ``unit`` (n, 3):
+    the least aligned axis less its component along u, then u x that."""
+    unit = np.asarray(unit, dtype=float)
+    first = np.eye(3)[np.argmin(np.abs(unit), axis=1)]
+    first = first - np.sum(first * unit, axis=1, keepdims=True) * unit
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    second = unit[:, [1, 2, 0]] * first[:, [2, 0, 1]] - unit[:, [2, 0, 1]] * first[:, [1, 2, 0]]
+    return np.stack([first, second], axis=2)
