@@ -961,8 +961,7 @@ def _check_command_line(argv) -> tuple[bool, list]:
             out.append(rule if rule is None else _ros_override(rule))
         elif arg in ('-r', '--remap'):
             out.append(next(args, ''))
-            target, _, value = out[-1].partition(':=')
-            node, _, key = target.rpartition(':')
+            node, key, value = _split_rule(out[-1])
             if node in ('', NODE_NAME) and key == '__ns':
                 namespace = value
             elif node in ('', NODE_NAME) and key in ('__node', '__name'):
@@ -1058,23 +1057,24 @@ def _io_arguments(argv) -> list:
     """ROS arguments for the companion pose and wrench node: the remap rules of ``argv`` that
     concern it (global ones but a node rename, and those addressed to this node's name,
     without the name), in the same namespace; no parameters (it declares none)."""
-    name, rules, args = NODE_NAME, [], iter(argv[1:])
+    rules, args = [], iter(argv[1:])
     for arg in args:
         if arg in ('-r', '--remap'):
-            rules.append(next(args, ''))
-    for rule in rules:
-        target, _, value = rule.partition(':=')
-        node, _, key = target.rpartition(':')
-        if node in ('', NODE_NAME) and key in ('__node', '__name'):
-            name = value
+            rules.append(_split_rule(next(args, '')))
+    name = next((value for node, key, value in reversed(rules)
+                 if node in ('', NODE_NAME) and key in ('__node', '__name')), NODE_NAME)
     out = []
-    for rule in rules:
-        target, _, value = rule.partition(':=')
-        node, _, key = target.rpartition(':')
-        if key in ('__node', '__name') or node not in ('', NODE_NAME, name):
-            continue
-        out += ['-r', f'{key}:={value}']
+    for node, key, value in rules:
+        if key not in ('__node', '__name') and node in ('', NODE_NAME, name):
+            out += ['-r', f'{key}:={value}']
     return ['--ros-args'] + out if out else []
+
+
+def _split_rule(rule: str) -> tuple[str, str, str]:
+    """A remap rule ``[node:]key:=value`` as (node or '', key, value)."""
+    target, _, value = rule.partition(':=')
+    node, _, key = target.rpartition(':')
+    return node, key, value
 
 
 class Stopped(BaseException):

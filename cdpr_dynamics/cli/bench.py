@@ -321,7 +321,8 @@ def summary(result: dict) -> str:
             f"{ctl['published']['wrench']}/{ctl['published']['pose']}, recorded "
             f"{ctl['recorded'].get('wrench', 0)}/{ctl['recorded'].get('pose', 0)} "
             f"(+{ctl['recorded'].get('predicted_displacement', 0)} predictions), predicted "
-            f"{ctl['predicted']} ({100 * ctl['predicted_fraction']:.2f} %), poses accepted "
+            f"{ctl['predicted']} ({100 * ctl['predicted_fraction']:.2f} %; with the rejected "
+            f"{100 * ctl['handled_fraction']:.2f} %), poses accepted "
             f"{ctl['poses_accepted']}; pose update p50/p99 {ctl['update_ms_p50']:.2f}/"
             f"{ctl['update_ms_p99']:.2f} ms")
     return '\n'.join(lines)

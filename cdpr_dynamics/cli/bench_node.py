@@ -355,31 +355,12 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
 def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.0) -> dict:
     """``cdpr_record`` beside a running node while wrenches flood in at ``rate_hz``: messages
     recorded per second and bytes per message (all child processes, one ROS domain)."""
-    from cdpr_dynamics.node_process import start_node, stop_process
     from cdpr_dynamics.recording.reader import recording_info
 
-    reservation, env = _ros_session('record')
-    folder = Path(env['ROS_LOG_DIR'])
-    path = folder / 'bench.mcap'
-    node = start_node(config, env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    recorder = None
-    try:
-        recorder = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.record',
-                                     '--output', str(path)], env=env, stdout=subprocess.PIPE,
-                                    stderr=subprocess.STDOUT, text=True)
-        out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node', 'flood',
-                              '--rate', str(rate_hz), '--duration', str(duration_s), '--frame',
-                              load_settings(config).robot.frame_id], env=env,
-                             capture_output=True, text=True, timeout=duration_s + 60)
-        if out.returncode != 0:
-            raise RuntimeError(out.stderr.strip().splitlines()[-1])
-        sent = json.loads(out.stdout.strip().splitlines()[-1])
-        time.sleep(1.0)            # the node's last predictions reach the recorder
-    finally:
-        if recorder is not None:
-            stop_process(recorder)
-        stop_process(node)
-        reservation.release()
+    path, sent = _beside_node_and_recorder(
+        'record', config, None, ['flood', '--rate', str(rate_hz), '--duration', str(duration_s),
+                                 '--frame', load_settings(config).robot.frame_id],
+        duration_s + 60)
     info = recording_info(path)
     counts = {name: t.message_count for name, t in info.topics.items()}
     span_s = max((info.end_ns - info.start_ns) * 1e-9, 1e-9)
@@ -485,6 +466,38 @@ def controller(config, wrench_hz: float, pose_hz: float, duration_s: float,
             'last_stamp_s': start_s + (total - 1) / wrench_hz}
 
 
+def _beside_node_and_recorder(tag: str, config, parameters, child_args: list,
+                              timeout_s: float) -> tuple[Path, dict]:
+    """Run ``python -m cdpr_dynamics.cli.bench_node CHILD_ARGS`` (a traffic source) with
+    dynamics_node and ``cdpr_record`` beside it, all child processes on one ROS domain of their
+    own; once the node's counts have settled in the recording, stop both. The recording's
+    path and the JSON line the source printed."""
+    from cdpr_dynamics.node_process import start_node, stop_process
+
+    reservation, env = _ros_session(tag)
+    path = Path(env['ROS_LOG_DIR']) / f'{tag}.mcap'
+    node = start_node(config, env, parameters, stdout=subprocess.DEVNULL,
+                      stderr=subprocess.DEVNULL)
+    recorder = None
+    try:
+        recorder = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.record',
+                                     '--output', str(path)], env=env, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True)
+        out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node']
+                             + child_args, env=env, capture_output=True, text=True,
+                             timeout=timeout_s)
+        if out.returncode != 0:
+            raise RuntimeError((out.stderr or out.stdout).strip().splitlines()[-1])
+        sent = json.loads(out.stdout.strip().splitlines()[-1])
+        _wait_for_quiet_counts(path, time.time_ns(), 30.0)
+    finally:
+        if recorder is not None:
+            stop_process(recorder)
+        stop_process(node)
+        reservation.release()
+    return path, sent
+
+
 def _wait_for_quiet_counts(path: Path, after_ns: int, timeout_s: float) -> bool:
     """Until the recording being written at ``path`` holds two node diagnostics logged after
     ``after_ns`` with the same wrench count (the node has taken its queue), or the time is
@@ -514,35 +527,13 @@ def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
     """A controller's rates with ``cdpr_record`` beside the node (all child processes, one ROS
     domain): per topic the messages published, recorded, and predicted by the node (its
     /diagnostics counts, read from the recording)."""
-    from cdpr_dynamics.node_process import start_node, stop_process
     from cdpr_dynamics.recording.reader import read_messages, recording_info
     from msg_adapters.diagnostics import read_statuses
 
-    reservation, env = _ros_session('controller')
-    folder = Path(env['ROS_LOG_DIR'])
-    path = folder / 'controller.mcap'
-    parameters = {'model.method': method} if method else None
-    node = start_node(config, env, parameters, stdout=subprocess.DEVNULL,
-                      stderr=subprocess.DEVNULL)
-    recorder = None
-    try:
-        recorder = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.record',
-                                     '--output', str(path)], env=env, stdout=subprocess.PIPE,
-                                    stderr=subprocess.STDOUT, text=True)
-        out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node',
-                              'controller', '--config', str(config), '--wrench-hz',
-                              str(wrench_hz), '--pose-hz', str(pose_hz), '--duration',
-                              str(duration_s), '--subscribers', '2'], env=env,
-                             capture_output=True, text=True, timeout=duration_s + 90)
-        if out.returncode != 0:
-            raise RuntimeError((out.stderr or out.stdout).strip().splitlines()[-1])
-        sent = json.loads(out.stdout.strip().splitlines()[-1])
-        _wait_for_quiet_counts(path, time.time_ns(), 30.0)
-    finally:
-        if recorder is not None:
-            stop_process(recorder)
-        stop_process(node)
-        reservation.release()
+    path, sent = _beside_node_and_recorder(
+        'controller', config, {'model.method': method} if method else None,
+        ['controller', '--config', str(config), '--wrench-hz', str(wrench_hz), '--pose-hz',
+         str(pose_hz), '--duration', str(duration_s), '--subscribers', '2'], duration_s + 90)
     info = recording_info(path)
     recorded = {name.lstrip('/'): t.message_count for name, t in info.topics.items()}
     last = {}
@@ -565,6 +556,9 @@ def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
               'last_rejection': {'pose': pose_in.get('last_rejection', ''),
                                  'wrench': wrench_in.get('last_rejection', '')}}
     result['predicted_fraction'] = result['predicted'] / max(1, sent['wrench'])
+    # a wrench the cables cannot hold is answered with a rejection, not a prediction
+    result['handled_fraction'] = ((result['predicted'] + result['wrench_rejected'])
+                                  / max(1, sent['wrench']))
     result['recorded_fraction'] = {
         'wrench': recorded.get('wrench', 0) / max(1, sent['wrench']),
         'pose': recorded.get('pose', 0) / max(1, sent['pose']),
