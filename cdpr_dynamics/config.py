@@ -126,6 +126,10 @@ NODE_PARAMETERS: tuple[Param, ...] = (
           'changes are published within 0.1 s', 0.1, 60.0),
     Param('node.wrench_queue_depth', 200, 'depth of the best-effort wrench subscription: how '
           'many wrenches wait while the node is busy before the oldest are dropped', 1, 10000),
+    Param('node.rebuild', 'inline', 'where a moved pose is solved: inline (before the next '
+          'wrench, as cdpr_replay does) or worker (the tensions and sag-consistent statics in a '
+          'process of their own while the old model keeps predicting, then a swap)',
+          choices=('inline', 'worker')),
     Param('node.frf_max_points', 20000, 'largest n_points a frequency_response call may ask '
           'for (the worker process computes it: a large one takes seconds)', 1, 1000000),
     Param('node.frf_cache_size', 8, 'frequency responses kept per state (0: no cache)',

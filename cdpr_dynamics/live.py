@@ -56,6 +56,27 @@ class PoseUpdate:
 
 
 @dataclass(frozen=True, eq=False)
+class PoseStatics:
+    """The first half of a pose update (:meth:`LivePredictor.statics`), plain picklable data.
+
+    ``eq``: the chord equilibrium (tensions by the QP); ``resolved``: the settings with auto's
+    choice (None: the predictor's own, no choice made);
+    ``model_eq``: the model's own equilibrium (sag-consistent where the model sags, else
+    ``eq``), None with ``error`` its reason; ``choice_warnings``: auto's; ``timings_s``:
+    'tensions' and 'statics' (s).
+    """
+
+    position_m: np.ndarray
+    rotation: np.ndarray
+    eq: Equilibrium
+    resolved: Settings | None
+    model_eq: Equilibrium | None
+    error: str
+    choice_warnings: tuple[str, ...]
+    timings_s: dict
+
+
+@dataclass(frozen=True, eq=False)
 class Prediction:
     """The predicted state of a point of the platform (SPEC section 5).
 
@@ -109,7 +130,8 @@ class LivePredictor:
 
     # ----------------------------------------------------------------------------- state
 
-    def _moved(self, position, rotation) -> bool:
+    def moved(self, position, rotation) -> bool:
+        """Whether the pose is further than the tolerances from the current one."""
         if self.position_m is None:
             return True
         step = position - self.position_m
@@ -120,19 +142,48 @@ class LivePredictor:
 
     def update_pose(self, position_m, quaternion=None, rotation=None,
                     force: bool = False) -> PoseUpdate:
-        """Move to a pose; raise :class:`AnalysisError` (state unchanged) if it cannot be used."""
+        """Move to a pose; raise :class:`AnalysisError` (state unchanged) if it cannot be used:
+        :meth:`statics` then :meth:`apply`, where the pose moved (or ``force``)."""
         position = np.asarray(position_m, dtype=float)
         if rotation is None:
             rotation = np.eye(3) if quaternion is None else quaternion_to_matrix(quaternion)
-        if not force and not self._moved(position, rotation):
+        if not force and not self.moved(position, rotation):
             return PoseUpdate(False, self.last_update.method, self.last_update.dofs,
                               sag_parameter=self.last_update.sag_parameter)
+        return self.apply(self.statics(position, rotation))
+
+    def statics(self, position_m, rotation) -> PoseStatics:
+        """The first half of a pose update, the part that needs no model: the tensions and,
+        for sag-aware models, the sag-consistent equilibrium (warm-started from :attr:`eq`),
+        auto's choice. Changes nothing but the warm starts (the tension QP's, auto's choice),
+        so a worker process can run it on a predictor of its own (the node's
+        ``node.rebuild: worker``). Raises :class:`AnalysisError` where the pose has no
+        equilibrium."""
+        position = np.asarray(position_m, dtype=float)
         timings = {}
         start = time.perf_counter()
         eq = equilibrium(self.settings, position, rotation, self._solver)
         timings['tensions'] = time.perf_counter() - start
         start = time.perf_counter()
-        eq, system, warnings = self._build(eq)
+        resolved, model_eq, error = self.settings, None, ''
+        try:
+            resolved = self._resolved_settings(eq)
+            model_eq = equilibrium_for(resolved, eq, resolved.method, start=self.eq)
+        except (AnalysisError, DynamicsError, ValueError) as exc:
+            error = str(exc)
+        timings['statics'] = time.perf_counter() - start
+        return PoseStatics(position, rotation, eq,
+                           None if resolved is self.settings else resolved, model_eq, error,
+                           tuple(self._choice_warnings()) if not error else (), timings)
+
+    def apply(self, statics: PoseStatics) -> PoseUpdate:
+        """The second half: build the model of :meth:`statics`' answer (or the spring fallback),
+        its wrench set and Newmark factorisation, and make them current, the state of motion
+        carried over (:meth:`_integrator`). Raises :class:`AnalysisError` (state unchanged)
+        where no model is valid."""
+        timings = dict(statics.timings_s)
+        start = time.perf_counter()
+        eq, system, warnings = self._build(statics)
         timings['model'] = time.perf_counter() - start
         s = self.settings    # the wrenches the cables can hold here (per state, not per wrench)
         chord = eq.statics == 'chord'     # W^T itself, its rank checked by equilibrium()
@@ -143,7 +194,8 @@ class LivePredictor:
         start = time.perf_counter()
         integrator = self._integrator(system)
         timings['factorisation'] = time.perf_counter() - start
-        self.eq, self.system, self.position_m, self.rotation = eq, system, position, rotation
+        self.eq, self.system = eq, system
+        self.position_m, self.rotation = statics.position_m, statics.rotation
         self.integrator = integrator
         self.wrench_set = wrench_set
         sag = sag_parameter(eq.cables)
@@ -175,23 +227,28 @@ class LivePredictor:
         """auto's warning when no model within model.max_dofs meets model.tolerance."""
         return list(self._choice.warnings) if self.settings.method == 'auto' else []
 
-    def _build(self, eq: Equilibrium):
-        """(equilibrium, system, warnings) of the configured model at the chord equilibrium
-        ``eq`` (sag-consistent for sag-aware models, warm-started from the current state), or
-        of the spring fallback (with a warning) where the model is invalid."""
+    def _build(self, statics: PoseStatics):
+        """(equilibrium, system, warnings) of the configured model at :meth:`statics`' answer
+        (sag-consistent for sag-aware models), or of the spring fallback at the chord
+        equilibrium (with a warning) where the model is invalid."""
         warnings = []
-        try:
-            resolved = self._resolved_settings(eq)
-            model_eq = equilibrium_for(resolved, eq, resolved.method, start=self.eq)
-            system = build_system(resolved, model_eq)
-            if system.assembly.valid:
-                return model_eq, system, (list(system.assembly.warnings) + self._choice_warnings()
-                                          + model_warnings(resolved, model_eq, system.assembly))
-            warnings += system.assembly.warnings
-            failed = system.assembly.method
-        except (AnalysisError, DynamicsError, ValueError) as exc:
-            warnings.append(str(exc))
-            failed = self.settings.method
+        eq = statics.eq
+        failed = self.settings.method
+        if statics.error:
+            warnings.append(statics.error)
+        else:
+            resolved, model_eq = statics.resolved or self.settings, statics.model_eq
+            try:
+                system = build_system(resolved, model_eq)
+                if system.assembly.valid:
+                    return model_eq, system, (list(system.assembly.warnings)
+                                              + list(statics.choice_warnings)
+                                              + model_warnings(resolved, model_eq,
+                                                               system.assembly))
+                warnings += system.assembly.warnings
+                failed = system.assembly.method
+            except (AnalysisError, DynamicsError, ValueError) as exc:
+                warnings.append(str(exc))
         system = build_system(self.settings, eq, method=FALLBACK_METHOD)
         if not system.assembly.valid:
             raise AnalysisError('no valid model for this pose: ' + '; '.join(

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import _thread
 import collections
+import dataclasses
 import functools
 import os
 import signal
@@ -61,8 +62,10 @@ from cdpr_dynamics.config import (NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS
                                   check_params, check_problem_size, check_value,
                                   default_config_path, node_options, read_params_file,
                                   settings_from_params)
-from cdpr_dynamics.live import LivePredictor
-from cdpr_dynamics.worker import JobFailed, Worker, modes_job
+from cdpr_dynamics.live import LivePredictor, PoseUpdate
+from cdpr_dynamics.robot import quaternion_to_matrix
+from cdpr_dynamics.worker import (BackgroundStatics, JobFailed, StaticsRequest, Worker,
+                                  modes_job)
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import displacement_message, fill_displacement
 from msg_adapters.frf_service import (ARRAYS, pack_response, parse_request, response_size_error,
@@ -83,7 +86,7 @@ READ_ONLY = {'robot.frame_id', 'robot.anchors', 'robot.attachments', 'robot.init
              'node.wrench_queue_depth', 'node.service_introspection',
              # limits protect the node: a client must not raise them at runtime
              'node.frf_max_points', 'node.frf_max_values', 'node.frf_queue_depth',
-             'node.frf_cache_size', 'node.max_steps_per_wrench'}
+             'node.frf_cache_size', 'node.max_steps_per_wrench', 'node.rebuild'}
 LOG_PERIOD_S = 1.0
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
@@ -95,6 +98,8 @@ SWITCH_INTERVAL_S = 0.0005   # the GIL changes hands at least this often (Python
 MARKERS_PERIOD_S = 0.5    # markers of a new equilibrium at most this often (milliseconds each)
 MODES_PERIOD_S = 0.5      # modes refreshed after rebuilds at most this often (a moving pose
 #                           rebuilds at 50 Hz and more; its modes change slowly)
+MODES_DUTY = 0.1          # and at most this share of a core: a refresh that took 0.5 s (the
+#                           heavy-sag 6-DOF robot at fem_sag 16) waits 5 s for the next
 
 
 def _locked(method):
@@ -266,6 +271,12 @@ class DynamicsNode(Node):
         self._modes_future = None
         self._modes_revision = -1
         self._modes_asked = -np.inf
+        self._modes_period_s = MODES_PERIOD_S
+        # node.rebuild: worker: the statics of moved poses in a process of their own
+        self._background = (BackgroundStatics(self._wake)
+                            if self._flat['node.rebuild'] == 'worker' else None)
+        self._settings_token = 0            # bumps with the analysis settings
+        self._swap_s = collections.deque(maxlen=512)   # pose arrival -> its model in use
         logger = self.get_logger()
         self.pose_health = InputHealth(logger.get_child('pose'), diag.ERROR)
         self.wrench_health = InputHealth(logger.get_child('wrench'), diag.WARN)
@@ -324,8 +335,10 @@ class DynamicsNode(Node):
         self._log_model_warnings()
 
     def destroy_node(self):
-        """Stop the worker process, then the pose and wrench node and this one."""
+        """Stop the worker processes, then the pose and wrench node and this one."""
         self._worker.close()
+        if self._background is not None:
+            self._background.close()
         self.io.destroy_node()
         return super().destroy_node()
 
@@ -390,6 +403,7 @@ class DynamicsNode(Node):
             node_options(flat)
             if analysis_changed:
                 update = self.predictor.set_settings(settings)
+                self._settings_token += 1
         except NUMERIC_ERRORS as exc:
             reason = first_line(exc)
             self.get_logger().warning(f'parameter change rejected: {reason}')
@@ -447,8 +461,10 @@ class DynamicsNode(Node):
     @_locked
     def on_pose(self, msg: PoseStamped) -> None:
         """Move the model to the pose; rebuild only when it moved more than the tolerance."""
+        background = self._background is not None
         try:
-            update = self.inputs.pose(msg, self.get_clock().now().nanoseconds)
+            update = self.inputs.pose(msg, self.get_clock().now().nanoseconds,
+                                      self._hold_pose if background else None)
         except InvalidMessage as exc:
             self._reject(self.pose_health, exc.kind, str(exc))
             return
@@ -459,7 +475,61 @@ class DynamicsNode(Node):
             self._diag_dirty = self.pose_health.warn('clock', self.inputs.notice)
         if update.rebuilt:
             self._rebuilt(update)
-        self._publish_tensions(self._pose_stamp)
+        if not background or not self._queue_pose(*self._held_pose):
+            self._publish_tensions(self._pose_stamp)   # else with its model (_take_statics)
+
+    def _hold_pose(self, position_m, quaternion) -> PoseUpdate:
+        """``node.rebuild: worker``: the pose's update for the input checks: keep the pose for
+        :meth:`_queue_pose`, the model stays as it is."""
+        self._held_pose = (np.asarray(position_m, dtype=float), quaternion_to_matrix(quaternion))
+        update = self.predictor.last_update
+        return PoseUpdate(False, update.method, update.dofs, sag_parameter=update.sag_parameter)
+
+    def _queue_pose(self, position_m, rotation) -> bool:
+        """Give a moved pose to the background statics (latest wins; True); the current
+        model keeps predicting until :meth:`_take_statics` swaps the pose's model in. False
+        where the model in use is already at the pose."""
+        if not (self._background.busy or self.predictor.moved(position_m, rotation)):
+            return False
+        self._background.request(StaticsRequest(
+            position_m, rotation, self.predictor.settings, self._settings_token,
+            self._pose_stamp, time.monotonic()))
+        return True
+
+    def _take_statics(self) -> None:
+        """Swap in the model of the pose the background statics solved (its tensions
+        published), or report why the pose was rejected; then the next waiting pose."""
+        taken = self._background.take()
+        if taken is None:
+            return
+        request, result = taken
+        if request.token != self._settings_token:         # settings changed: solve it again
+            if self._background.pending is None:
+                self._background.pending = request
+        elif isinstance(result, Exception):
+            self._reject(self.pose_health, 'state', f'pose rejected: {first_line(result)}')
+        else:
+            try:
+                update = self.predictor.apply(result)
+            except NUMERIC_ERRORS as exc:
+                self._reject(self.pose_health, 'state', f'pose rejected: {first_line(exc)}')
+            else:
+                self._rebuilt(update)
+                self._swap_s.append(time.monotonic() - request.asked_s)
+                self._publish_tensions(request.stamp)
+        self._background.submit_pending(self._next_statics)
+
+    def _next_statics(self, request: StaticsRequest) -> StaticsRequest | None:
+        """The waiting pose as the background statics should solve it next (with the current
+        settings), or None where the model in use is already there (its tensions are then
+        published with the pose's stamp, as for a pose that did not move)."""
+        if request.token != self._settings_token:
+            return dataclasses.replace(request, settings=self.predictor.settings,
+                                       token=self._settings_token)
+        if self.predictor.moved(request.position_m, request.rotation):
+            return request
+        self._publish_tensions(request.stamp)
+        return None
 
     def on_wrench(self, msg: WrenchStamped) -> None:
         """Handle the wrench, then those already waiting (bounded): one executor round trip
@@ -565,7 +635,9 @@ class DynamicsNode(Node):
         current model, computed here: at start, before the node serves anything."""
         self._modal_stale = False
         try:
-            self._apply_modes(modes_job(*self._modes_args()))
+            found = modes_job(*self._modes_args())
+            self._modes_period_s = max(MODES_PERIOD_S, found['seconds'] / MODES_DUTY)
+            self._apply_modes(found)
         except NUMERIC_ERRORS as exc:
             self._modal_warnings = [f'natural frequencies failed: {first_line(exc)}']
 
@@ -585,13 +657,18 @@ class DynamicsNode(Node):
         if future is None or not future.done():
             return
         self._modes_future = None
+        try:
+            found, error = future.result(), ''
+            self._modes_period_s = max(MODES_PERIOD_S, found['seconds'] / MODES_DUTY)
+        except Exception as exc:  # noqa: BLE001 - JobFailed, WorkerError: reported, kept going
+            found, error = None, f'natural frequencies failed: {first_line(exc)}'
         if self._modes_revision != self.revision:      # rebuilt since: ask again
             self._modal_stale = True
             return
-        try:
-            self._apply_modes(future.result())
-        except Exception as exc:  # noqa: BLE001 - JobFailed, WorkerError: reported, kept going
-            self._modal_warnings = [f'natural frequencies failed: {first_line(exc)}']
+        if found is None:
+            self._modal_warnings = [error]
+        else:
+            self._apply_modes(found)
         self._diag_dirty = True
         self._log_model_warnings()    # damping, time step may have changed
 
@@ -691,6 +768,8 @@ class DynamicsNode(Node):
         ready = []
         with self._lock:
             self._take_modes()
+            if self._background is not None:
+                self._take_statics()
             while self._frf_pending:
                 call = self._frf_pending[0]
                 if call.header is None or (call.result is None and not call.future.done()):
@@ -793,7 +872,7 @@ class DynamicsNode(Node):
         input, wrench input, frequency_response."""
         hw = self.get_fully_qualified_name()
         name = self.get_name()
-        if self._modal_stale and time.monotonic() - self._modes_asked >= MODES_PERIOD_S:
+        if self._modal_stale and time.monotonic() - self._modes_asked >= self._modes_period_s:
             self._refresh_modal()
         statuses = [self._model_status(name, hw)]
         for title, health, extra in (('pose input', self.pose_health, {}),
@@ -828,7 +907,14 @@ class DynamicsNode(Node):
             'sag_parameter': np.round(update.sag_parameter, 4).tolist(),
             **_equilibrium_values(p.settings, p.eq),
             'rebuilds': self._rebuilds,
+            'rebuild': self._flat['node.rebuild'],
         }
+        if self._background is not None:
+            values['poses_superseded'] = self._background.superseded
+            if self._swap_s:
+                swap = np.array(self._swap_s) * 1e3
+                values['swap_ms_p50'] = float(np.percentile(swap, 50))
+                values['swap_ms_max'] = float(swap.max())
         for stage, seconds in update.timings_s.items():
             values[f'last_update_{stage}_ms'] = seconds * 1e3
         if rebuild.size:

@@ -68,13 +68,16 @@ class InputHandler:
     def last_wrench_ns(self) -> int | None:
         return self.wrench_clock.last_ns
 
-    def pose(self, msg, now_ns: int | None = None) -> PoseUpdate:
-        """Move the model to the pose; rebuilds only when it moved more than the tolerance."""
+    def pose(self, msg, now_ns: int | None = None, move=None) -> PoseUpdate:
+        """Move the model to the pose; rebuilds only when it moved more than the tolerance.
+        ``move(position_m, quaternion=...)``: what moves it (default the predictor's
+        ``update_pose``; the node's background rebuild queues it instead)."""
         self.notice = ''
         try:
             pose = read_pose(msg, self.frame_id, self.quaternion_tolerance)
             stamp = self.pose_clock.check(pose.stamp_ns, now_ns)
-            update = self.predictor.update_pose(pose.position_m, quaternion=pose.quaternion)
+            update = (move or self.predictor.update_pose)(pose.position_m,
+                                                          quaternion=pose.quaternion)
         except InvalidMessage:
             raise
         except NUMERIC_ERRORS as exc:

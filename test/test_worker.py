@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +17,9 @@ from scipy.spatial.transform import Rotation
 from cdpr_dynamics.analysis import build_system, equilibrium, equilibrium_for, frf_arrays, \
     system_modes
 from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.live import rotated_quaternion
-from cdpr_dynamics.worker import JobFailed, Worker, WorkerError
+from cdpr_dynamics.live import LivePredictor, rotated_quaternion
+from cdpr_dynamics.worker import (NICE, BackgroundStatics, JobFailed, StaticsRequest, Worker,
+                                  WorkerError)
 
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 120.0
@@ -64,6 +66,14 @@ def test_a_failing_job_gives_its_reason_and_the_worker_carries_on(worker):
         TIMEOUT_S)['frequency_hz'].size == 5
 
 
+def test_the_worker_runs_below_the_node(worker):
+    """The child yields the cores to its parent's wrench path: nice NICE above the parent."""
+    with pytest.raises(JobFailed):          # any answer: the child is up and serving
+        worker.submit('no_such_job').result(TIMEOUT_S)
+    parent = os.getpriority(os.PRIO_PROCESS, 0)
+    assert os.getpriority(os.PRIO_PROCESS, worker._process.pid) == min(19, parent + NICE)
+
+
 def test_a_killed_worker_fails_its_job_and_is_started_again():
     settings = load_settings(REPO / 'config' / 'paper_cdpr.yaml')
     eq = equilibrium(settings)
@@ -83,6 +93,73 @@ def test_a_killed_worker_fails_its_job_and_is_started_again():
     assert not worker._process.is_alive()
     with pytest.raises(WorkerError, match='closed'):
         worker.submit('frf').result(TIMEOUT_S)
+
+
+def test_statics_in_the_worker_give_the_inline_update(worker):
+    """node.rebuild: worker: the heavy-sag 6-DOF robot's poses solved in the child (its own
+    predictor, warm-started pose to pose) and applied here give the state of an inline
+    update_pose along the same poses: tensions, sag-consistent end forces, the model's
+    matrices. A new settings token starts a new predictor in the child."""
+    settings = load_settings(REPO / 'config' / 'heavy_sag_6dof.yaml').replace(
+        method='fem_sag', elements_per_cable=4)
+    inline, swapped = LivePredictor(settings), LivePredictor(settings)
+    rotation = Rotation.from_euler('z', 0.02).as_matrix()
+    for token, step_m in ((1, 0.01), (1, 0.02), (2, 0.03)):
+        position = settings.initial_position_m + [step_m, -step_m, 0.5 * step_m]
+        statics = worker.submit('statics', token, settings, position, rotation).result(TIMEOUT_S)
+        update = swapped.apply(statics)
+        expected = inline.update_pose(position, rotation=rotation)
+        assert update.rebuilt and update.method == expected.method == 'fem_sag'
+        assert update.warnings == expected.warnings
+        np.testing.assert_allclose(swapped.eq.tensions.tension_n,
+                                   inline.eq.tensions.tension_n, rtol=1e-9)
+        np.testing.assert_allclose(swapped.eq.end_force_n, inline.eq.end_force_n, rtol=1e-9,
+                                   atol=1e-9)
+        k_swapped, _ = swapped.system.matrices(dense=True)
+        k_inline, _ = inline.system.matrices(dense=True)
+        np.testing.assert_allclose(k_swapped, k_inline, rtol=1e-8, atol=1e-6)
+
+
+def test_a_refused_pose_fails_its_statics_job(worker):
+    settings = load_settings(REPO / 'config' / 'paper_cdpr.yaml')
+    future = worker.submit('statics', 7, settings, np.array([0.0, 0.0, 3.0]), np.eye(3))
+    with pytest.raises(JobFailed, match='outside the frame'):
+        future.result(TIMEOUT_S)
+
+
+def test_background_statics_keep_only_the_latest_pose():
+    """While one pose is solved, newer ones replace the waiting one (counted); the waiting
+    pose goes next as ``choose`` returns it, or is dropped."""
+    settings = load_settings(REPO / 'config' / 'paper_cdpr.yaml').replace(method='fem_sag')
+    woken = threading.Semaphore(0)       # released by each answer's wake-up
+    background = BackgroundStatics(lambda _future: woken.release())
+    try:
+        poses = [settings.initial_position_m + [0.01 * k, 0.0, 0.0] for k in range(4)]
+        for k, position in enumerate(poses):
+            background.request(StaticsRequest(position, np.eye(3), settings, 1, stamp=k))
+        assert background.busy and background.superseded == 2
+        assert background.pending.stamp == 3
+        first = _taken(background, woken)
+        assert first[0].stamp == 0
+        np.testing.assert_allclose(first[1].position_m, poses[0])
+        background.submit_pending(lambda request: request)       # pose 3 next
+        last = _taken(background, woken)
+        assert last[0].stamp == 3
+        background.request(StaticsRequest(poses[1], np.eye(3), settings, 1, stamp=4))
+        background.request(StaticsRequest(poses[2], np.eye(3), settings, 1, stamp=5))
+        _taken(background, woken)
+        background.submit_pending(lambda request: None)          # already there: dropped
+        assert not background.busy and background.pending is None
+    finally:
+        background.close()
+
+
+def _taken(background, woken):
+    """Wait for the background statics' wake-up, then take the answer."""
+    assert woken.acquire(timeout=TIMEOUT_S)
+    taken = background.take()
+    assert taken is not None and not isinstance(taken[1], Exception), taken
+    return taken
 
 
 def test_quaternions_agree_with_scipy():

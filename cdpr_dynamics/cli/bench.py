@@ -35,6 +35,7 @@ NODE_METHODS = (('spring', 1), ('catenary', 1), ('fem', 16), ('catenary_exact', 
                 ('fem_sag', 16))
 SIZES = [('spring', 1), ('fem', 1), ('fem', 4), ('fem', 16), ('fem', 64), ('fem', 256),
          ('catenary', 1), ('catenary_exact', 1), ('fem_sag', 16), ('fem_sag', 64), ('dsm', 1)]
+HEAVY_SAG_MODEL = {'model.method': 'fem_sag', 'model.elements_per_cable': 16}
 MODE_SIZES = [('fem', 16), ('fem', 64), ('fem_sag', 16), ('fem_sag', 64), ('dsm', 1)]
 
 
@@ -254,6 +255,14 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
                                                               duration_s=1.0 if quick else 3.0)
         result['controller'] = bench_node.controller_rate(dds_config,
                                                           duration_s=2.0 if quick else 10.0)
+        # the heavy-sag 6-DOF robot, fem_sag 16: pose updates of milliseconds at 50 Hz, solved
+        # inline (before the next wrench) and by node.rebuild: worker, in the same run
+        heavy = Path(default_config_path()).parent / 'heavy_sag_6dof.yaml'
+        result['controller_heavy_sag'] = {
+            mode: bench_node.controller_rate(heavy, duration_s=2.0 if quick else 10.0,
+                                             parameters={**HEAVY_SAG_MODEL,
+                                                         'node.rebuild': mode})
+            for mode in (('worker',) if quick else ('inline', 'worker'))}
     return result
 
 
@@ -314,9 +323,16 @@ def summary(result: dict) -> str:
         lines.append(f"cdpr_record beside the node under a 5 kHz wrench flood: "
                      f"{rec['messages_per_s']:.0f} messages/s recorded, "
                      f"{rec['bytes_per_message']:.0f} bytes/message (file)")
-        ctl = result['controller']
-        lines.append(
-            f"controller {ctl['wrench_hz']:.0f} Hz wrenches + {ctl['pose_hz']:.0f} Hz moving "
+        lines.append(_controller_line('controller', result['controller']))
+        for mode, ctl in result['controller_heavy_sag'].items():
+            lines.append(_controller_line(f'heavy_sag_6dof, node.rebuild {mode}:', ctl))
+    return '\n'.join(lines)
+
+
+def _controller_line(title: str, ctl: dict) -> str:
+    swap = (f", swap p50 {ctl['swap_ms_p50']:.2f} ms, {ctl['poses_superseded']} poses "
+            f"superseded" if ctl.get('rebuild') == 'worker' else '')
+    return (f"{title} {ctl['wrench_hz']:.0f} Hz wrenches + {ctl['pose_hz']:.0f} Hz moving "
             f"poses ({ctl['method']}) with cdpr_record, {ctl['duration_s']:.0f} s: published "
             f"{ctl['published']['wrench']}/{ctl['published']['pose']}, recorded "
             f"{ctl['recorded'].get('wrench', 0)}/{ctl['recorded'].get('pose', 0)} "
@@ -324,8 +340,7 @@ def summary(result: dict) -> str:
             f"{ctl['predicted']} ({100 * ctl['predicted_fraction']:.2f} %; with the rejected "
             f"{100 * ctl['handled_fraction']:.2f} %), poses accepted "
             f"{ctl['poses_accepted']}; pose update p50/p99 {ctl['update_ms_p50']:.2f}/"
-            f"{ctl['update_ms_p99']:.2f} ms")
-    return '\n'.join(lines)
+            f"{ctl['update_ms_p99']:.2f} ms{swap}")
 
 
 @interruptible('cdpr_bench')

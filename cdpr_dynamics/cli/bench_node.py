@@ -523,15 +523,16 @@ def _wait_for_quiet_counts(path: Path, after_ns: int, timeout_s: float) -> bool:
 
 
 def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
-                    duration_s: float = 10.0, method: str | None = None) -> dict:
+                    duration_s: float = 10.0, parameters: dict | None = None) -> dict:
     """A controller's rates with ``cdpr_record`` beside the node (all child processes, one ROS
     domain): per topic the messages published, recorded, and predicted by the node (its
-    /diagnostics counts, read from the recording)."""
+    /diagnostics counts, read from the recording). ``parameters``: the node's overrides
+    (``model.method``, ``node.rebuild``, ...)."""
     from cdpr_dynamics.recording.reader import read_messages, recording_info
     from msg_adapters.diagnostics import read_statuses
 
     path, sent = _beside_node_and_recorder(
-        'controller', config, {'model.method': method} if method else None,
+        'controller', config, parameters,
         ['controller', '--config', str(config), '--wrench-hz', str(wrench_hz), '--pose-hz',
          str(pose_hz), '--duration', str(duration_s), '--subscribers', '2'], duration_s + 90)
     info = recording_info(path)
@@ -551,6 +552,9 @@ def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
               'update_ms_p50': float(model.get('update_ms_p50', 'nan')),
               'update_ms_p99': float(model.get('update_ms_p99', 'nan')),
               'method': model.get('method', ''),
+              'rebuild': model.get('rebuild', ''),
+              'poses_superseded': int(model.get('poses_superseded', 0)),
+              'swap_ms_p50': float(model.get('swap_ms_p50', 'nan')),
               'pose_rejected': int(pose_in.get('rejected', 0)),
               'wrench_rejected': int(wrench_in.get('rejected', 0)),
               'last_rejection': {'pose': pose_in.get('last_rejection', ''),
