@@ -63,7 +63,8 @@ class PoseStatics:
     choice (None: the predictor's own, no choice made);
     ``model_eq``: the model's own equilibrium (sag-consistent where the model sags, else
     ``eq``), None with ``error`` its reason; ``choice_warnings``: auto's; ``timings_s``:
-    'tensions' and 'statics' (s).
+    'tensions', 'statics' and 'wrench_set' (s); ``wrench_set``: the external wrenches the cables
+    can hold at ``model_eq`` (:func:`wrench_set_at`).
     """
 
     position_m: np.ndarray
@@ -74,6 +75,7 @@ class PoseStatics:
     error: str
     choice_warnings: tuple[str, ...]
     timings_s: dict
+    wrench_set: WrenchSet | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,9 +174,13 @@ class LivePredictor:
         except (AnalysisError, DynamicsError, ValueError) as exc:
             error = str(exc)
         timings['statics'] = time.perf_counter() - start
+        start = time.perf_counter()
+        wrench_set = None if model_eq is None else wrench_set_at(self.settings, model_eq)
+        timings['wrench_set'] = time.perf_counter() - start
         return PoseStatics(position, rotation, eq,
                            None if resolved is self.settings else resolved, model_eq, error,
-                           tuple(self._choice_warnings()) if not error else (), timings)
+                           tuple(self._choice_warnings()) if not error else (), timings,
+                           wrench_set)
 
     def apply(self, statics: PoseStatics) -> PoseUpdate:
         """The second half: build the model of :meth:`statics`' answer (or the spring fallback),
@@ -185,12 +191,11 @@ class LivePredictor:
         start = time.perf_counter()
         eq, system, warnings = self._build(statics)
         timings['model'] = time.perf_counter() - start
-        s = self.settings    # the wrenches the cables can hold here (per state, not per wrench)
-        chord = eq.statics == 'chord'     # W^T itself, its rank checked by equilibrium()
-        wrench_set = WrenchSet(eq.geometry.structure_matrix if chord else _tangent_structure(eq),
-                               s.tension_min_n, s.tension_max_n,
-                               required_wrench(s.robot, s.external_force_n, s.external_moment_nm),
-                               full_rank=chord)
+        wrench_set = statics.wrench_set
+        if eq is not statics.model_eq or wrench_set is None:     # the spring fallback's
+            start = time.perf_counter()
+            wrench_set = wrench_set_at(self.settings, eq)
+            timings['wrench_set'] = time.perf_counter() - start
         start = time.perf_counter()
         integrator = self._integrator(system)
         timings['factorisation'] = time.perf_counter() - start
@@ -428,6 +433,18 @@ def time_step_warnings(settings: Settings, system: PlatformSystem, lowest_hz: fl
                             f'period of the lowest mode ({lowest_hz:.4g} Hz): its period comes '
                             f'out {100 * elongation:.2g} % long')
     return warnings
+
+
+def wrench_set_at(settings: Settings, eq: Equilibrium) -> WrenchSet:
+    """The external wrenches the cables can hold at ``eq`` within the tension box (per state,
+    not per wrench): W^T itself for chord statics (its rank checked by ``equilibrium``), else
+    the sagged cables' end tangents (:func:`_tangent_structure`)."""
+    s = settings
+    chord = eq.statics == 'chord'
+    return WrenchSet(eq.geometry.structure_matrix if chord else _tangent_structure(eq),
+                     s.tension_min_n, s.tension_max_n,
+                     required_wrench(s.robot, s.external_force_n, s.external_moment_nm),
+                     full_rank=chord)
 
 
 def _tangent_structure(eq: Equilibrium) -> np.ndarray:

@@ -99,7 +99,8 @@ def test_statics_in_the_worker_give_the_inline_update(worker):
     """node.rebuild: worker: the heavy-sag 6-DOF robot's poses solved in the child (its own
     predictor, warm-started pose to pose) and applied here give the state of an inline
     update_pose along the same poses: tensions, sag-consistent end forces, the model's
-    matrices. A new settings token starts a new predictor in the child."""
+    matrices, the wrenches the cables can hold. A new settings token starts a new predictor
+    in the child."""
     settings = load_settings(REPO / 'config' / 'heavy_sag_6dof.yaml').replace(
         method='fem_sag', elements_per_cable=4)
     inline, swapped = LivePredictor(settings), LivePredictor(settings)
@@ -118,6 +119,11 @@ def test_statics_in_the_worker_give_the_inline_update(worker):
         k_swapped, _ = swapped.system.matrices(dense=True)
         k_inline, _ = inline.system.matrices(dense=True)
         np.testing.assert_allclose(k_swapped, k_inline, rtol=1e-8, atol=1e-6)
+        for force_n in ([0.0, 0.0, 50.0], [30.0, -20.0, -100.0], [0.0, 0.0, -1e4]):
+            assert swapped.wrench_reason(force_n) == inline.wrench_reason(force_n)
+            assert swapped.wrench_set.margin(force_n) == pytest.approx(
+                inline.wrench_set.margin(force_n), rel=1e-9, abs=1e-9)
+    assert inline.wrench_reason([0.0, 0.0, -1e4])     # the last one is out of reach
 
 
 def test_a_refused_pose_fails_its_statics_job(worker):
