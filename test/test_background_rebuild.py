@@ -16,7 +16,6 @@ from cdpr_dynamics.live import LivePredictor
 from msg_adapters.diagnostics import OK
 from msg_adapters.joint_state import read_tensions
 from msg_adapters.pose import pose_message
-from msg_adapters.validation import stamp_to_ns
 from msg_adapters.wrench import wrench_message
 from test_node_dds import PAPER, Harness, ros  # noqa: F401 - ros: the module's ROS fixture
 
@@ -67,6 +66,8 @@ def test_poses_faster_than_their_statics(background):
     h = background
     before = h.prediction_count
     accepted = int(h.status('pose input')['values']['accepted'])
+    before_model = h.status('model')['values']
+    rebuilds, superseded = int(before_model['rebuilds']), int(before_model['poses_superseded'])
     stamps = []
     for k in range(40):
         position = [0.1 - 0.005 * k, 0.05, 1.1 + 0.002 * k]
@@ -84,12 +85,15 @@ def test_poses_faster_than_their_statics(background):
     lengths, tensions = read_tensions(msg)
     np.testing.assert_allclose(tensions, h.mirror.eq.tensions.tension_n, rtol=1e-6)
     np.testing.assert_allclose(lengths, h.mirror.eq.geometry.length_m, rtol=1e-12)
-    # every pose the node took (DDS drops some of a burst: best effort, depth 5) was either
-    # solved and swapped in (its tensions published) or replaced by a newer one
+    # every pose the node took (DDS drops some of a burst: best effort, depth 5), each 5 mm
+    # from the one before, was either solved and swapped in (a rebuild) or replaced by a newer
+    # one; counted by the node (cable_tensions, latched with depth 1, may skip one of two
+    # published back to back)
     since = len(h.diagnostics)
     accepted = int(h.status('pose input', since)['values']['accepted']) - accepted
-    superseded = int(h.status('model', since)['values']['poses_superseded'])
-    published = {stamp_to_ns(m.header.stamp) for m in h.tensions}
-    taken = sum(stamp_to_ns(s) in published for s in stamps)
-    assert taken + superseded == accepted, (taken, superseded, accepted)
+    model = h.status('model', since)['values']
+    swapped = int(model['rebuilds']) - rebuilds
+    superseded = int(model['poses_superseded']) - superseded
+    assert swapped + superseded == accepted, (model, accepted)
+    assert 1 <= swapped <= accepted
     assert h.alive()
