@@ -18,7 +18,7 @@ from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.models.catenary import (end_position, paper_misclosure, sag_parameter,
                                            up_and_weight)
 from cdpr_dynamics.robot import (WRENCH_AXES, Geometry, GeometryError, geometry,
-                                 required_wrench, skew)
+                                 required_wrench, singular_values, skew)
 from cdpr_dynamics.selection import choose_model
 from cdpr_dynamics.statics import Equilibrium, StaticsError, equilibrium_for
 from cdpr_dynamics.tensions import TensionSolver
@@ -51,9 +51,9 @@ def structure_rank(structure_matrix: np.ndarray) -> tuple[int, float, np.ndarray
 def _check_design(settings: Settings, geo: Geometry) -> None:
     """Refuse a structure matrix of rank below the platform DOFs, and crossing cables."""
     ndof = settings.robot.platform_dofs
-    sing = np.linalg.svd(geo.structure_matrix, compute_uv=False)     # the vectors only when
-    if np.sum(sing > RANK_TOLERANCE * sing[0]) < ndof:                # the rank is short
-        rank, _, direction = structure_rank(geo.structure_matrix)
+    sing = singular_values(geo.structure_matrix).tolist()                  # descending
+    if len(sing) < ndof or not sing[-1] > RANK_TOLERANCE * sing[0]:    # rank short: only
+        rank, _, direction = structure_rank(geo.structure_matrix)      # then the vectors
         axis = WRENCH_AXES[int(np.argmax(np.abs(direction)))]
         raise AnalysisError(f'the structure matrix has rank {rank} < {ndof} platform DOFs: no '
                             f'cable tensions produce a wrench along '
@@ -91,6 +91,8 @@ def equilibrium(settings: Settings, position_m=None, rotation=None,
         raise AnalysisError(f'infeasible tension distribution: {result.reason}')
     cables = CableSet(geo.chord_m, result.tension_n, settings.cable.ea_n,
                       settings.cable.weight_per_length_n_per_m, settings.robot.gravity_m_s2)
+    # its cached length_m and unit are the geometry's (the same numbers: |l_i|, l_i / |l_i|)
+    cables.__dict__.update(length_m=geo.length_m, unit=geo.unit)
     ea = settings.cable.ea_n
     chord = Equilibrium(geo, result, cables, 'chord', result.tension_n[:, None] * geo.unit,
                         geo.length_m * ea / (ea + result.tension_n),

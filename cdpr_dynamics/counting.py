@@ -13,8 +13,12 @@ the undamped condensed dynamic stiffness Z(lam) = D_pp - D_pi D_ii^-1 D_ip on th
 k = EA/l and twice transverse k = T/l, m = mu l) and for ``dsm`` (j pi c / L); for ``fem_sag``
 (or any :class:`ChainBlocks`) the negative pivots of the block LDL^T of each chain's
 K_ii - lam M_ii, whose last step is also the chain's end stiffness. Every frequency is
-bracketed by multisection on J (all brackets at once) to :data:`TOL_HZ`; a bracket narrower
-than that with J rising by m is a frequency of multiplicity m (exact, no splitting). The
+bracketed to :data:`TOL_HZ`; a bracket narrower than that with J rising by m is a frequency of
+multiplicity m (exact, no splitting). Where the clamped eigenvalues are known (``fem``,
+``dsm``) the first sweep brackets them tightly and samples Z between them, and each
+frequency is the zero of one of Z's eigenvalues, found by safeguarded Newton
+(:meth:`Counter._roots`) and accepted only where J confirms it; elsewhere (and where that
+fails) multisection on J, all brackets at once. The
 interiors also give their clamped modes (the chains' end motion in them), which
 :mod:`cdpr_dynamics.modes` needs where a mode leaves the platform at rest.
 """
@@ -32,6 +36,10 @@ TOL_HZ = 1e-9           # brackets of the counted frequencies (Hz)
 SECTIONS = 5            # points per bracket and sweep of the multisection
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))   # symmetric 3x3 components
 _GUARDS = np.array([1e-2, 1e-3, 1e-5, 1e-9])   # brackets around a guess (of the width)
+_SAMPLES = np.concatenate([np.logspace(-9, -1.5, 13), np.linspace(0.05, 0.45, 9)])
+_FRACTIONS = np.unique(np.concatenate([_SAMPLES, 1.0 - _SAMPLES]))   # of a bracket's width
+NEWTON_STEPS = 40       # safeguarded Newton steps per frequency at most (then multisection)
+STEP = 1e-20            # complex step (relative to lam) of the derivatives Z', S'
 
 
 def counter(system: PlatformSystem) -> 'Counter | None':
@@ -96,25 +104,32 @@ class _UniformInterior:
             self._planes = _normal_planes(self.unit)
         return self._planes
 
-    def clamped_end(self, lam, cable: int, count: int):
-        return _chain_end(self.blocks, lam, cable, self.clamped_modes(lam, cable, count)[1])
-
-    def clamped_modes(self, lam, cable: int, count: int):
-        """The last interior node's motion (3, count) in the M-normalised clamped modes of
-        chain ``cable`` at its eigenvalue ``lam``: v sin(j pi (n-1)/n) / sqrt(m n (2 +
-        cos(j pi/n)) / 6) along the mode's direction(s) v, j from lam_j = lam."""
-        n, unit = self.n, self.unit[cable]
-        columns = []
-        for rate, directions in ((self.rate[0, cable], unit[:, None]),
-                                 (self.rate[1, cable], self.planes()[cable])):
-            c = (rate - 2.0 * lam) / (rate + lam)
-            j = n * math.acos(min(max(c, -1.0), 1.0)) / math.pi
-            if abs(j - round(j)) < 1e-6 and 1 <= round(j) <= n - 1:
-                j = round(j)
-                mass = self.m_element[cable] * n * (2.0 + math.cos(j * math.pi / n)) / 6.0
-                columns.append(directions * math.sin(j * math.pi * (n - 1) / n)
-                               / math.sqrt(mass))
-        return None, np.concatenate(columns, axis=1)[:, :count]
+    def clamped_ends(self, lam: float, jumps: np.ndarray):
+        """The end reactions of the clamped modes at the eigenvalue ``lam``, ``jumps[c]`` of
+        chain c (:func:`_stacked_ends`), closed form: the last interior node moves
+        v sin(j pi (n-1)/n) / sqrt(m n (2 + cos(j pi/n)) / 6) along the mode's direction v
+        (axial u first, then the transverse plane), j from lam_j = lam; the last element's
+        block O = -(k_a uu^T + k_t (I - uu^T)) - lam (m/6) I gives the reaction
+        O^T psi = (-k - lam m/6) psi and the mass coupling (m/6) psi."""
+        n = self.n
+        c = (self.rate - 2.0 * lam) / (self.rate + lam)                     # (2, ncab)
+        j = n * np.arccos(np.clip(c, -1.0, 1.0)) / math.pi
+        whole = np.round(j)
+        hit = (np.abs(j - whole) < 1e-6) & (whole >= 1) & (whole <= n - 1)
+        mass = self.m_element * n * (2.0 + np.cos(whole * math.pi / n)) / 6.0
+        amplitude = np.where(hit, np.sin(whole * math.pi * (n - 1) / n)
+                             / np.sqrt(mass), 0.0)[[0, 1, 1]].T              # (ncab, 3)
+        sixth = self.m_element / 6.0
+        reaction = (-(self.rate * sixth) - lam * sixth)[[0, 1, 1]].T         # (ncab, 3)
+        directions = np.concatenate([self.unit[:, None], np.swapaxes(self.planes(), 1, 2)],
+                                    axis=1)                                   # (ncab, 3, 3)
+        valid = hit[[0, 1, 1]].T
+        take = valid & (np.cumsum(valid, axis=1) <= np.asarray(jumps)[:, None])
+        last = (amplitude[..., None] * directions)[take]                      # (r, 3)
+        size = np.sqrt((reaction[:, :2] ** 2 * [1.0, 2.0]).sum(axis=1))      # ||O||_F
+        scale = float((size[:, None] * np.abs(amplitude) * take).max(initial=0.0))
+        owner = np.nonzero(take)[0]
+        return reaction[take][:, None] * last, sixth[owner][:, None] * last, owner, scale
 
 
 class _ChainInterior:
@@ -181,6 +196,9 @@ class _ChainInterior:
             out[..., i, j] = out[..., j, i] = v
         return (neg if count else None), out
 
+    def clamped_ends(self, lam: float, jumps: np.ndarray):
+        return _stacked_ends(self, lam, jumps)
+
     def clamped_end(self, lam, cable: int, count: int):
         """(end reactions (3, count), mass coupling (3, count), scale of the reactions' terms)
         of ``count`` M-orthonormal clamped modes of chain ``cable`` at its eigenvalue ``lam``:
@@ -240,9 +258,33 @@ class _ContinuousInterior:
         """(J0 per cable, None: Z from the model) or, ``count=False``, (None, S_c(lam))."""
         return (self.counts(lam), None) if count else (None, self.members(lam))
 
+    def clamped_ends(self, lam: float, jumps: np.ndarray):
+        return _stacked_ends(self, lam, jumps)
+
     def clamped_end(self, lam, cable: int, count: int):
         force = _continuous_clamped_end(self.members, lam, cable, count)
         return force, np.zeros_like(force), float(np.abs(force).max())
+
+
+def _inverse_quadratic(f0, f1, f2, x0, x1, x2):
+    """The zero of the quadratic x(f) through (f0, x0), (f1, x1), (f2, x2) (inverse
+    quadratic interpolation, as in Brent's method); nan or inf where two f coincide."""
+    return (x0 * f1 * f2 / ((f0 - f1) * (f0 - f2)) + x1 * f0 * f2 / ((f1 - f0) * (f1 - f2))
+            + x2 * f0 * f1 / ((f2 - f0) * (f2 - f1)))
+
+
+def _stacked_ends(interior, lam: float, jumps: np.ndarray):
+    """(reactions (r, 3), mass couplings (r, 3), owning cable (r,), scale) of the clamped
+    modes at the eigenvalue ``lam`` of every chain c with ``jumps[c]`` > 0 (that many each,
+    cables ascending): each chain's ``clamped_end`` stacked."""
+    forces, masses, owner, scale = [], [], [], 0.0
+    for c in np.flatnonzero(jumps):
+        force, mass, size = interior.clamped_end(lam, int(c), int(jumps[c]))
+        forces.append(force.T)
+        masses.append(mass.T)
+        owner += [c] * force.shape[1]
+        scale = max(scale, size)
+    return np.concatenate(forces), np.concatenate(masses), np.array(owner, dtype=int), scale
 
 
 def _chain_end(blocks, lam, cable: int, last):
@@ -280,7 +322,8 @@ class Counter:
         own :meth:`PlatformSystem.dynamic_stiffness`), symmetrised."""
         s = self.system
         if ends is None:
-            z = s.dynamic_stiffness(np.sqrt(lam)).real
+            z = s.platform_stiffness[None] - lam[:, None, None] * s.platform_mass[None] \
+                + s.cables_at(lam).real
         else:
             z = s.platform_stiffness[None] - lam[:, None, None] * s.platform_mass[None] \
                 + s.cables_on_platform(ends.real)
@@ -310,7 +353,10 @@ class Counter:
         distinct frequency below ``f_max_hz`` and the lowest ``count`` (the last group can hold
         more than the report takes).
 
-        Multisection of J on all brackets at once: each sweep cuts a bracket at
+        The first sweep: 0, each known clamped-chain eigenvalue +- tol/4, the top and, between
+        them, samples for :meth:`_roots` (Newton on Z's eigenvalues, then one sweep of J to
+        confirm). Otherwise, or where that does not confirm, multisection of J on all
+        brackets at once: each sweep cuts a bracket at
         :data:`SECTIONS` equal steps and around a guess (:meth:`_guess`) at
         :data:`_GUARDS` of its width: a good guess ends the bracket in a sweep or two, a bad
         one costs nothing. Brackets narrower than ``tol_hz`` are the frequencies, J's rise
@@ -329,7 +375,13 @@ class Counter:
             cut = np.zeros(0) if poles_w is None else \
                 np.stack([poles_w - tol / 4, poles_w + tol / 4], axis=1).ravel()
             points = np.concatenate([[0.0], cut[(cut > 0.0) & (cut < hi)], [hi]])
-            at = (points,) + self.count(points * points)
+            wide = np.zeros(0, dtype=int) if poles_w is None else \
+                np.flatnonzero(np.diff(points) > tol)      # Newton's samples, same sweep
+            samples = points[wide, None] + np.diff(points)[wide, None] * _FRACTIONS
+            both = np.concatenate([points, samples.ravel()])
+            at = self.count(both * both)
+            sampled = at[2][points.size:].reshape(samples.shape + (self.nd,))
+            at = (points,) + tuple(a[:points.size] for a in at)
             if at[1][-1] >= want:
                 break
             hi *= 2.0
@@ -342,6 +394,17 @@ class Counter:
         lo = tuple(e[:-1][keep] for e in at)
         up = tuple(e[1:][keep] for e in at)
         found = []
+        if poles_w is not None:       # closed-form interiors: Newton on Z's eigenvalues
+            done = up[0] - lo[0] <= tol
+            interval = np.flatnonzero(keep)[~done]
+            rows = np.minimum(np.searchsorted(wide, interval), max(wide.size - 1, 0))
+            roots = None if not np.array_equal(wide[rows], interval) else self._roots(
+                tuple(a[~done] for a in lo), tuple(a[~done] for a in up), poles_w, tol,
+                (samples[rows], sampled[rows]))
+            if roots is not None:
+                found = [np.stack([0.5 * (lo[0] + up[0]), up[1] - lo[1], lo[0], up[0]])[:, done],
+                         roots]
+                lo = up = (np.zeros(0),)
         t = np.arange(1, SECTIONS + 1) / (SECTIONS + 1)
         while lo[0].size:
             done = up[0] - lo[0] <= tol
@@ -383,6 +446,121 @@ class Counter:
         mult = mult[keep]
         take = int(mult.sum()) if f_max_hz is not None else min(int(mult.sum()), want)
         return omega[keep], mult, groups[2][keep], groups[3][keep], take
+
+    def _roots(self, lo, up, poles_w, tol, sampled):
+        """(4, g) groups [omega, multiplicity, lo, hi] of the frequencies inside pole-free
+        brackets (J0 constant across each, closed-form interiors), or None (then multisection).
+
+        Inside such a bracket Z(lam) is analytic with Z' = -(mass) negative definite, so its
+        sorted eigenvalues mu_k decrease strictly and the bracket's r frequencies are the zeros
+        of mu_k, k = s..s+r-1 (s: Z's negative eigenvalues at the lower end). Each is found by
+        safeguarded Newton (:data:`NEWTON_STEPS` at most, bisection where a step leaves the
+        bracket) on g = mu_k (lam - p_a)(p_b - lam), p_a, p_b the clamped-chain eigenvalues at
+        the bracket's ends (factor 1 at 0 and at the top), which takes out mu's poles;
+        mu_k' = v^T Z' v (v its eigenvector, Z' by a complex step). Zeros closer than
+        ``tol`` / 2 are one frequency; each is accepted only where J rises by exactly its
+        multiplicity across [omega - tol/2, omega + tol/2], as multisection would end.
+        """
+        (lo_w, lo_j, lo_0, lo_mu, _), (up_w, up_j, up_0, up_mu, _) = lo, up
+        if not lo_w.size:
+            return np.zeros((4, 0))
+        first = lo_j - lo_0.sum(axis=1)                   # Z's negative eigenvalues at lo
+        rise = up_j - lo_j
+        if np.any(lo_0 != up_0) or np.any(first < 0) or np.any(first + rise > self.nd):
+            return None
+        bracket = np.repeat(np.arange(lo_w.size), rise)
+        index = first[bracket] + np.arange(bracket.size) - np.repeat(np.cumsum(rise) - rise,
+                                                                     rise)
+        a, b = lo_w[bracket] ** 2, up_w[bracket] ** 2
+        # the weight (lam - p_a)(p_b - lam) = (ka lam + ca)(cb - kb lam): k = 1, c = -p_a or
+        # p_b at a pole, else k = 0, c = 1
+        ka = np.isin(lo_w, poles_w + tol / 4)[bracket].astype(float)
+        kb = np.isin(up_w, poles_w - tol / 4)[bracket].astype(float)
+        ca = np.where(ka > 0, -(lo_w[bracket] - tol / 4) ** 2, 1.0)
+        cb = np.where(kb > 0, (up_w[bracket] + tol / 4) ** 2, 1.0)
+        every = np.arange(bracket.size)
+        # Z's eigenvalues at points crowding towards both ends of each bracket (``sampled``:
+        # (omega (b, p), eigenvalues (b, p, nd)), from the first sweep) narrow every task
+        # to neighbouring samples around its zero: Newton's start
+        points = np.concatenate([lo_w[:, None], sampled[0], up_w[:, None]], axis=1)
+        lam = (points * points)[bracket]                                    # (tasks, points)
+        mu = np.concatenate([lo_mu[:, None], sampled[1], up_mu[:, None]],
+                            axis=1)[bracket, :, index]
+        negative = mu < 0.0
+        cut = np.argmax(negative, axis=1)          # first sample below zero (never the 0th)
+        if np.any(~negative[every, cut]) or np.any(cut == 0):
+            return None
+        g = mu * (ka[:, None] * lam + ca[:, None]) * (cb[:, None] - kb[:, None] * lam)
+        a, b = lam[every, cut - 1], lam[every, cut]
+        third = np.where(cut + 1 < lam.shape[1], cut + 1, cut - 2)   # another neighbour
+        with np.errstate(all='ignore'):
+            x = _inverse_quadratic(g[every, cut - 1], g[every, cut], g[every, third],
+                                   a, b, lam[every, third])
+            rf = a + (b - a) * g[every, cut - 1] / (g[every, cut - 1] - g[every, cut])
+            x = np.where(np.isfinite(x) & (x > a) & (x < b), x,
+                         np.where(np.isfinite(rf) & (rf > a) & (rf < b), rf, 0.5 * (a + b)))
+            active = every
+            last = np.full(x.size, np.inf)                       # each task's previous step
+            for _ in range(NEWTON_STEPS):
+                xa = x[active]
+                z, dz = self.z_slope(xa)
+                values, vectors = np.linalg.eigh(z)
+                k = index[active]
+                rows = np.arange(k.size)
+                mu = values[rows, k]
+                v = vectors[rows, :, k]
+                slope = np.einsum('ti,tij,tj->t', v, dz, v)
+                a[active] = np.where(mu >= 0.0, xa, a[active])
+                b[active] = np.where(mu < 0.0, xa, b[active])
+                left = ka[active] * xa + ca[active]
+                right = cb[active] - kb[active] * xa
+                w = left * right
+                new = xa - mu * w / (slope * w + mu * (ka[active] * right - kb[active] * left))
+                new = np.where(np.isfinite(new) & (new >= a[active]) & (new <= b[active]),
+                               new, 0.5 * (a[active] + b[active]))
+                x[active] = new
+                moved = np.abs(np.sqrt(new) - np.sqrt(xa))
+                before = last[active]
+                ahead = moved * (moved / before) ** 2   # the next step, were it quadratic
+                keep = (moved > tol / 4) & ~((ahead < 1e-3 * tol) & (moved < 1e-3 * before)
+                                             & (before < np.inf))
+                last[active] = moved
+                active = active[keep]
+                if not active.size:
+                    break
+            else:
+                return None
+        omega = np.sqrt(x)
+        order = np.lexsort((omega, bracket))
+        omega, bracket = omega[order], bracket[order]
+        new_group = np.ones(omega.size, dtype=bool)
+        new_group[1:] = (bracket[1:] != bracket[:-1]) | (np.diff(omega) > tol / 2)
+        starts = np.flatnonzero(new_group)
+        ends = np.append(starts[1:], omega.size) - 1
+        mult = ends - starts + 1
+        centre = 0.5 * (omega[starts] + omega[ends])
+        owner = bracket[starts]
+        lo_v, hi_v = centre - tol / 2, centre + tol / 2
+        below = lo_j[owner] + starts - np.searchsorted(bracket, owner)   # modes before each
+        if np.any(lo_v <= lo_w[owner]) or np.any(hi_v >= up_w[owner]) \
+                or np.any(lo_v[1:] <= hi_v[:-1]):
+            return None
+        j = self.count(np.concatenate([lo_v, hi_v]) ** 2)[0].reshape(2, -1)
+        if np.any(j[0] != below) or np.any(j[1] != below + mult):
+            return None
+        return np.stack([centre, mult, lo_v, hi_v])
+
+    def z_slope(self, lam):
+        """(Z(lam), Z'(lam)), (nl, nd, nd) each, undamped, from one complex step of the
+        cables' end stiffness (exact to round-off: Z is real analytic in lam)."""
+        s = self.system
+        step = STEP * np.maximum(lam, 1.0)
+        cables = s.cables_at(lam + 1j * step)
+        z = s.platform_stiffness[None] - lam[:, None, None] * s.platform_mass[None] \
+            + cables.real
+        z = 0.5 * (z + np.swapaxes(z, -1, -2))
+        dz = cables.imag / step[:, None, None] - s.platform_mass[None]
+        return z, 0.5 * (dz + np.swapaxes(dz, -1, -2))
 
     @staticmethod
     def _guess(lo, up, poles_w) -> np.ndarray:

@@ -21,7 +21,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.linalg.blas import dsbmv as _sbmv
-from scipy.linalg.lapack import dpbtrf as _pbtrf, dpbtrs as _pbtrs
+from scipy.linalg.lapack import dgesv as _gesv, dpbtrf as _pbtrf, dpbtrs as _pbtrs
 
 from cdpr_dynamics.models.base import CableAssembly
 from cdpr_dynamics.robot import Geometry, Robot, skew
@@ -108,13 +108,13 @@ class PlatformSystem:
         if damping.mass_factor == 0.0 and damping.stiffness_factor == 0.0:
             lam = w * w
             own = self.platform_stiffness[None] - lam[:, None, None] * self.platform_mass[None]
-            return (own + self._cables_at(lam)).astype(complex)
+            return (own + self.cables_at(lam)).astype(complex)
         scale = 1.0 + 1j * w * damping.stiffness_factor
         lam = (w * w - 1j * w * damping.mass_factor) / scale
         own = self.platform_stiffness[None] - lam[:, None, None] * self.platform_mass[None]
-        return scale[:, None, None] * (own + self._cables_at(lam))
+        return scale[:, None, None] * (own + self.cables_at(lam))
 
-    def _cables_at(self, lam: np.ndarray) -> np.ndarray:
+    def cables_at(self, lam: np.ndarray) -> np.ndarray:
         """sum_i G_i^T S_i(lam) G_i, (nl, ndof, ndof) or (ndof, ndof) where it is constant.
 
         Shortcuts of :meth:`cables_on_platform` (same numbers): a constant end stiffness
@@ -128,9 +128,12 @@ class PlatformSystem:
             return self.cables_on_platform(assembly.end_stiffness(lam))
         cables = assembly.decoupled
         flat = cables.stiffness(lam).reshape(2 * cables.unit.shape[0], lam.size)   # (2n, nl)
-        out = flat.real.T @ self._decoupled_congruence
-        if np.iscomplexobj(flat):
-            out = out + 1j * (flat.imag.T @ self._decoupled_congruence)
+        if np.iscomplexobj(flat):        # two real GEMMs written into one complex result
+            out = np.empty((lam.size, self._decoupled_congruence.shape[1]), dtype=complex)
+            out.real = flat.real.T @ self._decoupled_congruence
+            out.imag = flat.imag.T @ self._decoupled_congruence
+        else:
+            out = flat.T @ self._decoupled_congruence
         return out.reshape(-1, self.platform_dofs, self.platform_dofs)
 
     def cables_on_platform(self, ends: np.ndarray) -> np.ndarray:
@@ -469,12 +472,12 @@ class ChainNewmark(Newmark):
         self._nd = nd
         k_pp = _platform_block(system.platform_stiffness, blocks.k_diag, g)
         m_pp = _platform_block(system.platform_mass, blocks.m_diag, g)
-        self._p_pair = np.hstack([m_pp, k_pp])                             # (nd, 2 nd)
+        self._p_pair = np.concatenate((m_pp, k_pp), axis=1)                # (nd, 2 nd)
         a_pp = scale_k * k_pp + scale_m * m_pp
         interior = blocks.nodes - 1
         self._n = nd + 3 * interior * blocks.k_diag.shape[0]
         if interior == 0:
-            self._s_inv = np.linalg.inv(a_pp)
+            self._s_inv = _inverse(a_pp)
             self._b_pair = None
         else:
             self._k_band = _chain_band(blocks.k_diag, blocks.k_off)
@@ -484,14 +487,14 @@ class ChainNewmark(Newmark):
                 raise np.linalg.LinAlgError(f'chain band not positive definite (dpbtrf info '
                                             f'{info})')
             self._factor = factor
-            b_k = _chain_coupling(blocks.k_off, g, self._n - nd)
-            b_m = _chain_coupling(blocks.m_off, g, self._n - nd)
-            self._b_pair = np.hstack([b_m, b_k])                           # (ni, 2 nd)
-            self._b_stack = np.vstack([b_m, b_k])                          # (2 ni, nd)
-            coupling = scale_k * b_k + scale_m * b_m                       # A_ip
+            end_m, end_k = _end_coupling(blocks.m_off, g), _end_coupling(blocks.k_off, g)
+            self._b_pair = _chain_coupling(np.concatenate((end_m, end_k), axis=2),
+                                           interior)                       # (ni, 2 nd): M | K
+            self._b_stack = np.concatenate((self._b_pair[:, :nd], self._b_pair[:, nd:]))
+            coupling = _chain_coupling(scale_k * end_k + scale_m * end_m, interior)   # A_ip
             z, info = _pbtrs(factor, coupling, lower=1)
             self._coupling, self._z = coupling, z
-            self._s_inv = np.linalg.inv(a_pp - coupling.T @ z)
+            self._s_inv = _inverse(a_pp - coupling.T @ z)
         self.u, self.v, self.acc = np.zeros(self._n), np.zeros(self._n), np.zeros(self._n)
         self._check_stability(alpha, beta)
 
@@ -544,37 +547,41 @@ class ChainNewmark(Newmark):
         return u_new
 
 
-#: (k, b, a): row offset k in the lower band, column component b, row component a of a node's
-#: diagonal block (a = b + k) or, with k >= 3, of the next node's off-diagonal block
-#: (a = k - 3 + b); see :func:`_chain_band`
-_BAND_DIAG = tuple((k, b, b + k) for k in range(3) for b in range(3 - k))
-_BAND_OFF = tuple((k, b, k - 3 + b) for k in range(1, 6) for b in range(3) if 0 <= k - 3 + b <= 2)
-
-
 def _chain_band(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
     """(6, ni) lower band storage (LAPACK: band[r - c, c] = A[r, c], Fortran order) of the
     cables' interior chains, one chain after another: the symmetric block-tridiagonal blocks
     ``diag[:, :-1]`` and ``off[:, :-1]`` of :class:`~cdpr_dynamics.models.base.ChainBlocks`.
 
-    Column c = (cable, node j, component b): band[k, c] = D_j[b + k, b] for b + k <= 2 (the
-    node's own block) and, below it, A[3 (j+1) + a, 3 j + b] = O_j[b, a] with a = k - 3 + b
-    (block (j, j+1) transposed); zero past each chain's last node. Built as the C-ordered
-    (cables, nodes, 3, 6) array whose transpose is the Fortran band: no copies."""
+    Column c = (cable, node j, component b) holds A[c + k, c], k = 0..5: the column b of the
+    node's 8 x 3 slab P_j = A[3j : 3j + 8, 3j : 3j + 3] = [D_j; O_j^T; 0] from its row b
+    down, band[k, c] = P_j[b + k, b] (O_j = block (j, j+1), zero past each chain's last
+    node). In the C-ordered slabs that entry sits at 4 b + 3 k: the band is one strided view
+    of them, and its C-ordered copy (ni, 6) transposed the Fortran band."""
     cables, interior = diag.shape[0], diag.shape[1] - 1
-    band = np.zeros((cables, interior, 3, 6))
-    for k, b, a in _BAND_DIAG:
-        band[:, :, b, k] = diag[:, :-1, a, b]
-    for k, b, a in _BAND_OFF:
-        band[:, :-1, b, k] = off[:, :-1, b, a]
-    return band.reshape(-1, 6).T
+    slab = np.zeros((cables, interior, 8, 3))
+    slab[:, :, :3] = diag[:, :-1]
+    slab[:, :-1, 3:6] = np.swapaxes(off[:, :-1], -1, -2)
+    item = slab.itemsize
+    skew = np.ndarray((cables * interior, 3, 6), slab.dtype, slab, 0,
+                      (24 * item, 4 * item, 3 * item))     # [(c, j), b, k] = P_j[b + k, b]
+    return skew.reshape(-1, 6).T
 
 
-def _chain_coupling(off: np.ndarray, g: np.ndarray, ni: int) -> np.ndarray:
-    """(ni, ndof) dense A_ip: the rows of each cable's last interior node, O_c,last G_c."""
-    cables, interior = off.shape[0], off.shape[1]
-    out = np.zeros((cables, interior, 3, g.shape[2]))
-    out[:, -1] = _end_coupling(off, g)
-    return out.reshape(ni, -1)
+def _chain_coupling(end: np.ndarray, interior: int) -> np.ndarray:
+    """(ni, k) dense rows of the cables' interior nodes, zero but each cable's last interior
+    node, which holds ``end`` (ncab, 3, k) (e.g. O_c,last G_c: A_ip)."""
+    out = np.zeros((end.shape[0], interior, 3, end.shape[2]))
+    out[:, -1] = end
+    return out.reshape(-1, end.shape[2])
+
+
+def _inverse(a: np.ndarray) -> np.ndarray:
+    """a^-1 of a small square matrix by LAPACK gesv (A X = I), as ``np.linalg.inv`` computes
+    it, without numpy's wrapper; ``np.linalg.LinAlgError`` where a is singular."""
+    _, _, inverse, info = _gesv(a, np.eye(a.shape[0]))
+    if info != 0:
+        raise np.linalg.LinAlgError('Singular matrix')
+    return np.ascontiguousarray(inverse)     # C order, as numpy's: products sum as they did
 
 
 def _largest_eigenvalue(k, m) -> float:

@@ -33,7 +33,7 @@ from math import comb
 
 import numpy as np
 
-from cdpr_dynamics.robot import cross
+from cdpr_dynamics.robot import cross, singular_values
 
 #: more facet normals than this: keep this many (random subsets) as an outer bound, decide the
 #: rest with the inner test and an LP (many cables on a 6-DOF platform).
@@ -98,7 +98,7 @@ def _subsets(n: int, k: int) -> np.ndarray:
 
 
 def _rank_full(wt: np.ndarray) -> bool:
-    sing = np.linalg.svd(wt, compute_uv=False)
+    sing = singular_values(wt)
     return wt.shape[1] >= wt.shape[0] and sing[-1] > 1e-9 * sing[0]
 
 
@@ -110,17 +110,40 @@ def _normals_of(wt: np.ndarray, subsets: np.ndarray) -> np.ndarray:
     else:
         _, sing, vt = np.linalg.svd(wt.T[subsets])    # null vector: last right singular vector
         normals = vt[:, -1, :][sing[:, -1] > 1e-9 * sing[:, 0]]
-    norm = np.linalg.norm(normals, axis=1)
+    return _unit_rows(normals)
+
+
+@lru_cache(maxsize=16)
+def _pair_cross_index(n: int) -> np.ndarray:
+    """(4, 3, C(n, 2)) flat indices into a C-ordered (3, n) W^T of the factors of the cross
+    products g_i x g_j of all pairs i < j (the order of :func:`_subsets`): component c is
+    a_{c+1} b_{c+2} - a_{c+2} b_{c+1} (indices mod 3) with a = g_i, b = g_j, as
+    :func:`~cdpr_dynamics.robot.cross` computes it."""
+    i, j = np.triu_indices(n, 1)
+    r1, r2 = np.array([[1], [2], [0]]), np.array([[2], [0], [1]])
+    return np.stack([r1 * n + i, r2 * n + j, r2 * n + i, r1 * n + j])
+
+
+def _unit_rows(normals: np.ndarray) -> np.ndarray:
+    """The rows of ``normals`` (k, d) scaled to unit length; rows of length below 1e-9 of the
+    longest (and of 1) dropped: degenerate subsets span no hyperplane."""
+    norm = np.sqrt(np.add.reduce(normals * normals, axis=1))       # as np.linalg.norm
     keep = norm > 1e-9 * max(1.0, float(norm.max(initial=0.0)))
+    if keep.all():
+        return normals / norm[:, None]
     return normals[keep] / norm[keep, None]
 
 
 def _facet_normals(wt: np.ndarray, full_rank: bool = False) -> np.ndarray | None:
     """Unit normals of all the zonotope's facets, (k, d); None when too many or rank deficient
-    (``full_rank``: the caller has checked the rank already)."""
+    (``full_rank``: the caller has checked the rank already). For d = 3 the cross products of
+    all pairs come from one gather of W^T's entries (:func:`_pair_cross_index`)."""
     d, n = wt.shape
     if n < d or comb(n, d - 1) > MAX_NORMALS or not (full_rank or _rank_full(wt)):
         return None
+    if d == 3:     # C-ordered normals: the products with them below sum as before
+        f = np.ascontiguousarray(wt).ravel().take(_pair_cross_index(n))
+        return _unit_rows((f[0] * f[1] - f[2] * f[3]).T.copy())
     return _normals_of(wt, _subsets(n, d - 1))
 
 
@@ -159,7 +182,7 @@ class WrenchSet:
             self._pinv = np.linalg.pinv(self.wt)
         self.offset = self.normals @ self.centre
         self.reach = self.half * np.abs(self.normals @ self.wt).sum(axis=1)
-        scale = max(1.0, float(np.abs(self.required).max(initial=0.0)), t_max_n)
+        scale = max(1.0, max(map(abs, self.required.tolist()), default=0.0), t_max_n)
         self.tolerance = tolerance_n * scale
         self.lp_calls = 0
 
@@ -175,11 +198,11 @@ class WrenchSet:
     def reason(self, force_n, moment_nm=(0.0, 0.0, 0.0)) -> str:
         """Why the external wrench cannot be held by the cables within the box, or ``''``."""
         w = self._needed(force_n, moment_nm)
-        if not np.all(np.isfinite(w)):
-            return 'wrench is not finite'
-        slack = self.reach - np.abs(self.normals @ w - self.offset)
-        k = int(np.argmin(slack))
-        if slack[k] < -self.tolerance:
+        slack = self.reach - np.abs(self.normals.dot(w) - self.offset)
+        k = int(slack.argmin())
+        if not slack[k] >= -self.tolerance:          # outside, or NaN/inf (one test per wrench)
+            if not np.isfinite(w).all():
+                return 'wrench is not finite'
             return (f'wrench outside the feasible set: the cables would need '
                     f'{_fmt(w)} with tensions in [{self.t_min_n:g}, {self.t_max_n:g}] N; '
                     f'exceeds the reachable set by {-slack[k]:.4g} along '
@@ -190,9 +213,12 @@ class WrenchSet:
                 f'tensions in [{self.t_min_n:g}, {self.t_max_n:g}] N (linear program)')
 
     def _needed(self, force_n, moment_nm) -> np.ndarray:
-        ext = np.concatenate([np.asarray(force_n, dtype=float).reshape(3),
-                              np.asarray(moment_nm, dtype=float).reshape(3)])
-        return self.required - ext[:self.required.size]
+        """w = the required wrench minus the external one (3 or 6,)."""
+        w = self.required.copy()
+        w[:3] -= force_n
+        if w.size == 6:
+            w[3:] -= moment_nm
+        return w
 
     def _inside(self, w) -> bool:
         """Inner test (least-norm tensions in the box), else the LP: is w in Z?"""

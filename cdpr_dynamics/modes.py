@@ -62,13 +62,12 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse.linalg as spla
 
-from cdpr_dynamics.counting import TOL_HZ, counter as _counter
+from cdpr_dynamics.counting import STEP as _STEP, TOL_HZ, counter as _counter
 from cdpr_dynamics.dynamics import DENSE_EIGEN_DOFS, DynamicsError, PlatformSystem
 
 PLATFORM_SHARE = 0.5    # platform energy fraction at or above: kind 'platform'
 CABLE_SHARE = 0.1       # platform energy fraction at or below: kind 'cable'
 MIN_MODES = 12          # at least this many modes (SPEC section 6: "at least the 12 lowest")
-_STEP = 1e-20           # complex step (relative to lam) of the derivatives Z', S'
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,6 +174,7 @@ class _Classifier:
         self.mass_pp = system.platform_mass + (
             0.0 if blocks is None else system.cables_on_platform(blocks.m_diag[:, -1][None])[0])
         self.z = counter.z
+        self.g_map = system.geometry.attachment_map()                    # (ncab, 3, nd)
 
     def modes(self, f_max_hz, count, tol_hz) -> Modes | None:
         """Classified modes by counting (module doc); None where the bookkeeping fails."""
@@ -219,26 +219,30 @@ class _Classifier:
         coupling = self._coupling_mass(lam, ends)                        # (g, ncab, 3, 3)
         total_map = self.mass_pp[None] + (np.zeros((lam.size, 1, 1)) if coupling is None
                                           else s.cables_on_platform(coupling))
-        g_map = s.geometry.attachment_map()                               # (ncab, 3, nd)
+        g_map = self.g_map
         values, vectors = np.linalg.eigh(z)
         out = [[], [], [], []]
-        for i, (m, group) in enumerate(zip(mult, groups)):
-            nearest = np.argsort(np.abs(values[i]), kind='stable')[:m]
-            basis = vectors[i][:, np.sort(nearest)]                       # (nd, m)
-            modal = -basis.T @ dz[i] @ basis                               # phi^T M phi
-            platform = basis.T @ self.mass_pp @ basis
-            share, w = scipy.linalg.eigh(platform, modal)                 # w^T modal w = I
-            share, w = share[::-1], w[:, ::-1]
-            phi = basis @ w                                                # (nd, m)
-            d = np.einsum('cia,ak->cik', g_map, phi)                       # (ncab, 3, m)
-            cables = -np.einsum('cik,cij,cjk->kc', d, d_ends[i], d)
+        for m in np.unique(mult):              # groups of one multiplicity at once
+            i = np.flatnonzero(mult == m)
+            nearest = np.sort(np.argsort(np.abs(values[i]), axis=1, kind='stable')[:, :m],
+                              axis=1)
+            basis = np.take_along_axis(vectors[i], nearest[:, None, :], axis=2)  # (k, nd, m)
+            basis_t = np.swapaxes(basis, 1, 2)
+            modal = -basis_t @ dz[i] @ basis                               # phi^T M phi
+            platform = basis_t @ self.mass_pp @ basis
+            share, w = _generalized_eigh(platform, modal)                  # w^T modal w = I
+            share, w = share[:, ::-1], w[:, :, ::-1]
+            phi = basis @ w                                                # (k, nd, m)
+            d = np.einsum('cia,gak->gcik', g_map, phi)                     # (k, ncab, 3, m)
+            cables = -np.einsum('gcik,gcij,gcjk->gkc', d, d_ends[i], d)
             if self.blocks is not None:
-                end = np.einsum('cik,cij,cjk->kc', d, self.blocks.m_diag[:, -1], d)
-                cables = cables - end - 2.0 * np.einsum('cik,cij,cjk->kc', d, coupling[i], d)
-            out[0].append(np.full(m, group))
-            out[1].append(share)
-            out[2].append((total_map[i] @ phi).T ** 2)
-            out[3].append(cables)
+                end = np.einsum('gcik,cij,gcjk->gkc', d, self.blocks.m_diag[:, -1], d)
+                cables = cables - end - 2.0 * np.einsum('gcik,gcij,gcjk->gkc', d,
+                                                        coupling[i], d)
+            out[0].append(np.repeat(groups[i], m))
+            out[1].append(share.ravel())
+            out[2].append((np.swapaxes(total_map[i] @ phi, 1, 2) ** 2).reshape(-1, self.nd))
+            out[3].append(cables.reshape(-1, cables.shape[-1]))
         return [np.concatenate(o) for o in out]
 
     def _coupling_mass(self, lam, ends):
@@ -258,15 +262,10 @@ class _Classifier:
         combinations of the chains' clamped modes whose end forces cancel on the platform.
         None where they are not all ``mult`` modes of this frequency (dense fallback)."""
         s = self.system
-        g_map = s.geometry.attachment_map()
-        forces, masses, owner, scale = [], [], [], 0.0
-        for c in np.flatnonzero(jumps):
-            force, mass, size = self.interior.clamped_end(lam, int(c), int(jumps[c]))
-            forces.append(g_map[c].T @ force)
-            masses.append(g_map[c].T @ mass)
-            owner += [c] * force.shape[1]
-            scale = max(scale, size)
-        forces, masses = np.concatenate(forces, axis=1), np.concatenate(masses, axis=1)
+        g_map = self.g_map
+        force, mass, owner, scale = self.interior.clamped_ends(lam, jumps)
+        forces = np.einsum('rin,ri->nr', g_map[owner], force)              # (nd, r)
+        masses = np.einsum('rin,ri->nr', g_map[owner], mass)
         # the count says how many combinations leave the platform at rest (mult); the end
         # forces (accurate to ~eps (EA/T)^2 of their size) must agree: a clear gap
         _, sing, vt = np.linalg.svd(forces)
@@ -277,9 +276,18 @@ class _Classifier:
             return None
         null = vt[rank:].T                                               # (r, mult)
         energy = np.zeros((mult, s.geometry.n_cables))
-        np.add.at(energy.T, np.array(owner), null ** 2)
+        np.add.at(energy.T, owner, null ** 2)
         effective = (masses @ null).T ** 2
         return np.full(mult, group), np.zeros(mult), effective, energy
+
+
+def _generalized_eigh(a: np.ndarray, b: np.ndarray):
+    """Stacked symmetric-definite eigenproblems a w = s b w (b positive definite): (s
+    ascending (k, m), w (k, m, m) with w^T b w = I), by the Cholesky reduction b = L L^T,
+    L^-1 a L^-T y = s y, w = L^-T y (what LAPACK's sygv does, batched)."""
+    lower_inv = np.linalg.inv(np.linalg.cholesky(b))
+    values, y = np.linalg.eigh(lower_inv @ a @ np.swapaxes(lower_inv, 1, 2))
+    return values, np.swapaxes(lower_inv, 1, 2) @ y
 
 
 # --------------------------------------------------------------------------- dense path

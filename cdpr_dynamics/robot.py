@@ -22,7 +22,10 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
+from scipy.linalg.lapack import dgesdd as _gesdd
 
+
+_DIAG3 = (0, 1, 2)    # the diagonal of a 3 x 3 block, as an index
 
 #: Names of the wrench components (force, then moment), as messages name a direction.
 WRENCH_AXES = ('force x', 'force y', 'force z', 'moment x', 'moment y', 'moment z')
@@ -134,11 +137,17 @@ class Robot:
         """Axis-aligned box spanned by the anchors (the frame), lower and upper corner."""
         return self.anchors_m.min(axis=0), self.anchors_m.max(axis=0)
 
+    @functools.cached_property
+    def frame_limits(self) -> tuple[list[float], list[float]]:
+        """:attr:`frame_bounds_m` as Python floats (per-pose tests on three numbers)."""
+        lo, hi = self.frame_bounds_m
+        return lo.tolist(), hi.tolist()
+
     def platform_mass_matrix(self, rotation: np.ndarray) -> np.ndarray:
         """diag(m I, R I_P R^T) of the platform DOFs (Eq. 7, inertia in the world frame)."""
         n = self.platform_dofs
         mass = np.zeros((n, n))
-        mass[:3, :3] = self.mass_kg * np.eye(3)
+        mass[_DIAG3, _DIAG3] = self.mass_kg                 # m I
         if n == 6:
             mass[3:, 3:] = rotation @ self.inertia_kg_m2 @ rotation.T
         return mass
@@ -164,7 +173,7 @@ class Geometry:
         """(n, 3, ndof): attachment displacement per platform DOF, G_i = [I, -[r_i]x]."""
         ndof = self.structure_matrix.shape[0]
         g = np.zeros((self.n_cables, 3, ndof))
-        g[:, :, :3] = np.eye(3)
+        g[:, _DIAG3, _DIAG3] = 1.0                          # I
         if ndof == 6:
             g[:, :, 3:] = -skew(self.lever_m)
         return g
@@ -174,34 +183,52 @@ def geometry(robot: Robot, position_m, rotation=None, *, check_frame: bool = Tru
     """Cable vectors, lengths, unit vectors and structure matrix at pose (p, R).
 
     Raises :class:`GeometryError` when the position is not finite, lies outside the frame
-    (with ``check_frame``) or puts an attachment on its anchor.
+    (with ``check_frame``) or puts an attachment on its anchor. Called on every pose update:
+    its tests run on the three coordinates as Python floats and the arrays take one numpy call
+    per line (``|l_i|`` as ``np.linalg.norm`` computes it, without its argument handling).
     """
     p = np.asarray(position_m, dtype=float).reshape(3)
+    xyz = p.tolist()
     rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
-    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(rot))):
+    if not (all(map(math.isfinite, xyz)) and (rotation is None or np.isfinite(rot).all())):
         raise GeometryError('pose is not finite')
     if check_frame:
         lo, hi = robot.frame_bounds_m
-        outside = (p < lo - 1e-9) | (p > hi + 1e-9)
-        if np.any(outside & (hi - lo > 0)):
-            raise GeometryError(f'position {np.round(p, 4).tolist()} m is outside the frame '
-                                f'{lo.tolist()} .. {hi.tolist()} m')
-    lever = robot.attachments_m @ rot.T
-    chord = robot.anchors_m - (p + lever)
-    length = np.linalg.norm(chord, axis=1)
-    if np.any(length < 1e-6):
+        for x, low, high in zip(xyz, *robot.frame_limits):
+            if high > low and (x < low - 1e-9 or x > high + 1e-9):
+                raise GeometryError(f'position {np.round(p, 4).tolist()} m is outside the frame '
+                                    f'{lo.tolist()} .. {hi.tolist()} m')
+    if robot.point_mass:          # every b_i = 0: r_i = R b_i = 0
+        lever = np.zeros(robot.anchors_m.shape)
+        chord = robot.anchors_m - p
+    else:
+        lever = robot.attachments_m @ rot.T
+        chord = robot.anchors_m - (p + lever)
+    length = np.sqrt(np.add.reduce(chord * chord, axis=1))
+    if length.min() < 1e-6:
         i = int(np.argmin(length))
         raise GeometryError(f'cable {i} has zero length: attachment on its anchor')
     unit = chord / length[:, None]
-    wt = np.zeros((robot.platform_dofs, robot.n_cables))
-    wt[:3] = unit.T
-    if robot.platform_dofs == 6:
+    if robot.point_mass:
+        wt = unit.T.copy()
+    else:
+        wt = np.empty((6, robot.n_cables))
+        wt[:3] = unit.T
         wt[3:] = cross(lever, unit).T
     return Geometry(p, rot, lever, chord, length, unit, wt)
 
 
 def required_wrench(robot: Robot, external_force_n=(0, 0, 0), external_moment_nm=(0, 0, 0)):
     """The wrench the cables must supply, w = -(m g + f_e, tau_e) (Eq. 9), sized to the DOFs."""
-    w = np.concatenate([-(robot.mass_kg * robot.gravity_m_s2 + np.asarray(external_force_n)),
-                        -np.asarray(external_moment_nm, dtype=float)])
-    return w[:robot.platform_dofs]
+    force = -(robot.mass_kg * robot.gravity_m_s2 + np.asarray(external_force_n))
+    if robot.point_mass:
+        return force
+    return np.concatenate([force, -np.asarray(external_moment_nm, dtype=float)])
+
+
+def singular_values(matrix: np.ndarray) -> np.ndarray:
+    """Singular values of a real 2-D array, descending: LAPACK gesdd as ``np.linalg.svd(a,
+    compute_uv=False)`` calls it, without numpy's wrapper (a third of the cost of a (3, 8)
+    structure matrix's values, checked on every pose)."""
+    _, sing, _, info = _gesdd(matrix, 0)
+    return sing if info == 0 else np.linalg.svd(matrix, compute_uv=False)

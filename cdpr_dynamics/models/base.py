@@ -157,5 +157,7 @@ def massless_assembly(method: str, stiffness: np.ndarray, end_force_n: np.ndarra
 
 def slack_warnings(tension_n: np.ndarray) -> tuple[str, ...]:
     """Warnings for cables that carry no tension (T <= 0): straight models are invalid there."""
+    if np.asarray(tension_n).min(initial=np.inf) > 0.0:     # the usual case: no loop over
+        return ()                                            # numpy scalars
     return tuple(f'cable {i} is slack (T = {t:.3g} N <= 0): its geometric stiffness is not '
                  'positive' for i, t in enumerate(tension_n) if not t > 0.0)

@@ -59,6 +59,16 @@ Models (both massless: the platform end is the only node, like ``spring``):
   exactly and |F| = T_i; K = C^-1 at the solution, end force along the end tangent. As
   gamma -> 0 it tends to (EA + T)/L u u^T + T/L (I - u u^T).
 
+In the plane. The load gamma e and a force F in the vertical plane of the chord (spanned by
+l and e) keep the whole cable in that plane; the solutions do so by symmetry. With h the unit
+horizontal direction of l (any horizontal unit for a vertical chord), F = f_h h + f_v e and
+l = l_h h + l_v e, Eq. 25 is two equations, l_h = (L0/EA + q) f_h and
+l_v = L0/EA (f_v - gamma L0/2) + s, and C is block diagonal in (h, e; n):
+c_hh = L0/EA + q - k f_h^2, c_he = -m f_h, c_ee = L0/EA + k f_h^2, c_nn = L0/EA + q with
+k = L0 p/(T_A T_B), m = s/(T_A T_B). The solve and the stiffness work there on (n,) arrays,
+with 2x2 and 3x3 systems eliminated in closed form; :func:`end_position` and
+:func:`flexibility` are the same formulas for any force in 3D.
+
 Irvine's sag parameter per cable is :func:`sag_parameter`.
 """
 from __future__ import annotations
@@ -85,7 +95,7 @@ class _Parts(NamedTuple):
     """Intermediate quantities of the closed forms (see the module docstring)."""
 
     v: np.ndarray         # F.e
-    h_vec: np.ndarray     # F - V e
+    h_vec: np.ndarray     # F - V e (in a cable's plane: its signed horizontal component f_h)
     h2: np.ndarray        # H^2
     t_b: np.ndarray       # tension at B (|F|)
     t_a: np.ndarray       # tension at A
@@ -95,6 +105,29 @@ class _Parts(NamedTuple):
     min_tension: np.ndarray
 
 
+def _closed_forms(v, h_vec, h2, length, gamma) -> _Parts:
+    """:class:`_Parts` from V = F.e, H_vec (or f_h) and H^2 = |H_vec|^2 (module docstring).
+
+    The caller ignores numpy's floating-point warnings (trial states past slack give inf/nan)."""
+    a1 = v - gamma * length
+    t_b = np.sqrt(h2 + v * v)
+    t_a = np.sqrt(h2 + a1 * a1)
+    same = v * a1 > 0.0
+    taut = bool(same.all())             # no low point in any cable: one branch (same numbers)
+    total = v + a1
+    p = total / (v * t_a + a1 * t_b)
+    if not taut:
+        p = np.where(same, p, (h2 + t_a * t_b - v * a1) / ((t_a + t_b) * h2))
+    s = length * total / (t_a + t_b)
+    lp = length * p
+    q = lp * _asinhc(gamma * lp)
+    # lowest tension: at an end, or H where the tangent is horizontal inside the cable
+    min_tension = np.minimum(t_a, t_b)
+    if not taut:
+        min_tension = np.where(same, min_tension, np.sqrt(h2))
+    return _Parts(v, h_vec, h2, t_b, t_a, p, q, s, min_tension)
+
+
 def _parts(force, length, gamma, up) -> _Parts:
     force = np.asarray(force, dtype=float)
     length = np.asarray(length, dtype=float)
@@ -102,22 +135,15 @@ def _parts(force, length, gamma, up) -> _Parts:
     v = force @ up if up.ndim == 1 else np.einsum('...i,...i->...', force, up)
     h_vec = force - v[..., None] * up
     h2 = np.einsum('...i,...i->...', h_vec, h_vec)
-    a0, a1 = v, v - gamma * length
-    t_b = np.sqrt(h2 + a0 * a0)
-    t_a = np.sqrt(h2 + a1 * a1)
-    same = a0 * a1 > 0.0
-    taut = bool(np.all(same))           # no low point in any cable: one branch (same numbers)
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        p = (a0 + a1) / (a0 * t_a + a1 * t_b)
-        if not taut:
-            p = np.where(same, p, (h2 + t_a * t_b - a0 * a1) / ((t_a + t_b) * h2))
-        s = length * (a0 + a1) / (t_a + t_b)
-        q = length * p * _asinhc(gamma * length * p)
-    # lowest tension: at an end, or H where the tangent is horizontal inside the cable
-    min_tension = np.minimum(t_a, t_b)
-    if not taut:
-        min_tension = np.where(same, min_tension, np.sqrt(h2))
-    return _Parts(v, h_vec, h2, t_b, t_a, p, q, s, min_tension)
+        return _closed_forms(v, h_vec, h2, length, gamma)
+
+
+def _flexibility_terms(r: _Parts, length, ea):
+    """(L0/EA + q, L0 p/(T_A T_B), s/(T_A T_B)): C = (L0/EA + q) I + (L0 p H^2/(T_A T_B) - q)
+    e e^T - L0 p/(T_A T_B) H_vec H_vec^T - s/(T_A T_B) (H_vec e^T + e H_vec^T) (Eq. 29)."""
+    tt = r.t_a * r.t_b
+    return length / ea + r.q, length * r.p / tt, r.s / tt
 
 
 def end_position(force, unstrained_length, ea, gamma, up, parts: _Parts | None = None
@@ -145,13 +171,12 @@ def flexibility(force, unstrained_length, ea, gamma, up, parts: _Parts | None = 
     up = np.asarray(up, dtype=float)
     length = np.asarray(unstrained_length, dtype=float)
     r = _parts(force, length, gamma, up) if parts is None else parts
+    c_nn, k, m = _flexibility_terms(r, length, ea)
     ee = up[..., :, None] * up[..., None, :]
     hh = r.h_vec[..., :, None] * r.h_vec[..., None, :]
     he = r.h_vec[..., :, None] * up[..., None, :]
-    tt = r.t_a * r.t_b
-    c = (length / ea)[..., None, None] * np.eye(3) + r.q[..., None, None] * (np.eye(3) - ee)
-    c = c + (length * r.p / tt)[..., None, None] * (r.h2[..., None, None] * ee - hh)
-    return c - (r.s / tt)[..., None, None] * (he + np.swapaxes(he, -1, -2))
+    c = c_nn[..., None, None] * np.eye(3) + (k * r.h2 - r.q)[..., None, None] * ee
+    return c - k[..., None, None] * hh - m[..., None, None] * (he + np.swapaxes(he, -1, -2))
 
 
 def tensions(force, unstrained_length, gamma, up):
@@ -185,15 +210,110 @@ def sag_parameter(cables: CableSet) -> np.ndarray:
     length = cables.length_m
     chord = np.asarray(cables.chord_m, dtype=float)
     horizontal = chord - (chord @ up)[:, None] * up
-    cos_theta = np.linalg.norm(horizontal, axis=1) / length
+    cos_theta = np.sqrt(np.add.reduce(horizontal * horizontal, axis=1)) / length  # as norm()
     t = np.asarray(cables.tension_n, dtype=float)
     with np.errstate(divide='ignore', invalid='ignore'):
         ratio = gamma * length * cos_theta / t
         sag_ratio = ratio / 8.0
         lam2 = ratio ** 2 * cables.ea_n / (t * (1.0 + 8.0 * sag_ratio ** 2))
-    out = np.where(t > 0, lam2, np.inf)
+    out = lam2 if t.min() > 0.0 else np.where(t > 0, lam2, np.inf)
     out.setflags(write=False)
     return out
+
+
+# --------------------------------------------------------------------------- the cable planes
+
+class _Planes(NamedTuple):
+    """The vertical plane of each cable's chord (module docstring, "In the plane"), per pose.
+
+    ``horizontal`` (n, 3) the unit h, ``span_h``/``span_v`` (n,) l = -chord as l_h h + l_v e,
+    ``hh``, ``he`` (n, 3, 3) h h^T and h e^T + e h^T, ``ee`` (3, 3) e e^T, ``tol_scale``
+    max(L, 1) (m) of the closure tests; ``doubled`` the same with the spans and lengths
+    repeated (2n,), for :func:`_residual` of two starts per cable in one pass."""
+
+    up: np.ndarray
+    gamma: float
+    ea: float
+    length: np.ndarray
+    unit: np.ndarray
+    horizontal: np.ndarray
+    span_h: np.ndarray
+    span_v: np.ndarray
+    hh: np.ndarray
+    he: np.ndarray
+    ee: np.ndarray
+    tol_scale: np.ndarray
+    doubled: '_Planes | None' = None     # span_h, span_v, length repeated: two starts at once
+
+
+_PLANES: list = []      # [(chord copy, gravity copy, EA, gamma/length, _Planes)]: the last few
+
+
+def _planes(cables: CableSet) -> _Planes:
+    """:class:`_Planes` of ``cables``, kept for the last few chords (a pose's statics and
+    model ask for the same chords at many tensions; compared by value, so never stale)."""
+    chord = np.asarray(cables.chord_m, dtype=float)
+    gravity = np.asarray(cables.gravity_m_s2, dtype=float)
+    key = (float(cables.ea_n), float(cables.weight_per_length_n_per_m))
+    for old_chord, old_gravity, old_key, planes in _PLANES:
+        if (old_key == key and old_chord.shape == chord.shape and (old_chord == chord).all()
+                and (old_gravity == gravity).all()):
+            return planes
+    planes = _make_planes(cables, chord)
+    _PLANES.insert(0, (chord.copy(), gravity.copy(), key, planes))
+    del _PLANES[4:]
+    return planes
+
+
+def _make_planes(cables: CableSet, chord: np.ndarray) -> _Planes:
+    up, gamma = up_and_weight(cables)
+    length = _row_norm(chord)
+    span_v = -(chord @ up)
+    horizontal = -chord - span_v[:, None] * up
+    span_h = _row_norm(horizontal)
+    level = span_h > 1e-12 * length         # else a vertical chord: any horizontal h will do
+    if level.all():
+        horizontal = horizontal / span_h[:, None]
+    else:
+        axis = np.eye(3)[int(np.argmin(np.abs(up)))]
+        axis = axis - (axis @ up) * up
+        horizontal = np.where(level[:, None], horizontal / np.where(level, span_h, 1.0)[:, None],
+                              axis / np.linalg.norm(axis))
+        span_h = np.where(level, span_h, 0.0)
+    he = horizontal[:, :, None] * up
+    planes = _Planes(up, gamma, float(cables.ea_n), length, chord / length[:, None], horizontal,
+                     span_h, span_v, horizontal[:, :, None] * horizontal[:, None, :],
+                     he + he.transpose(0, 2, 1), up[:, None] * up, np.maximum(length, 1.0))
+    twice = np.concatenate([[span_h, span_v, length]] * 2, axis=1)
+    for array in (*planes, twice):       # shared through the cache: read-only
+        if isinstance(array, np.ndarray):
+            array.flags.writeable = False
+    return planes._replace(doubled=planes._replace(span_h=twice[0], span_v=twice[1],
+                                                   length=twice[2]))
+
+
+def _in_plane(force, planes: _Planes):
+    """(f_h, f_v) of forces (n, 3) in their cables' planes (their normal part dropped)."""
+    return np.add.reduce(force * planes.horizontal, axis=1), force @ planes.up
+
+
+def _lift(f_h, f_v, planes: _Planes):
+    """Vectors (n, 3) f_h h + f_v e from their components in the cables' planes."""
+    return f_h[:, None] * planes.horizontal + f_v[:, None] * planes.up
+
+
+def _plane_stiffness(f_h, f_v, l0, planes: _Planes, r: _Parts) -> np.ndarray:
+    """K = C^-1 (n, 3, 3) of in-plane catenaries: C is block diagonal in (h, e; n) with
+    c_hh = c_nn - k f_h^2, c_he = -m f_h, c_ee = L0/EA + k f_h^2, c_nn = L0/EA + q
+    (:func:`_flexibility_terms`), inverted in closed form (symmetric by construction)."""
+    c_nn, k, m = _flexibility_terms(r, l0, planes.ea)
+    kh2 = k * r.h2
+    c_hh, c_ee, c_he = c_nn - kh2, l0 / planes.ea + kh2, -m * f_h
+    inv_det = 1.0 / (c_hh * c_ee - c_he * c_he)
+    k_nn = 1.0 / c_nn
+    return (k_nn[:, None, None] * np.eye(3) + (c_ee * inv_det - k_nn)[:, None, None] * planes.hh
+            + (c_hh * inv_det - k_nn)[:, None, None] * planes.ee
+            - (c_he * inv_det)[:, None, None] * planes.he)
 
 
 # --------------------------------------------------------------------------- the exact solve
@@ -222,12 +342,45 @@ def _row_norm(x: np.ndarray) -> np.ndarray:
     return np.sqrt(np.add.reduce(x * x, axis=-1))
 
 
-def _residual(force, length, target, tension, ea, gamma, up, scale):
-    """(residual (n, 4) of the closure and of |F| = T, the :func:`_parts` it was made of)."""
-    parts = _parts(force, length, gamma, up)
-    pos = end_position(force, length, ea, gamma, up, parts) - target
-    t = _row_norm(force)
-    return np.concatenate([pos, (scale * (t / tension - 1.0))[:, None]], axis=1), parts
+def _residual(x, planes: _Planes, t_inv, scale):
+    """(residual (3, n) of the closure (h, e) and of |F| = T, the :class:`_Parts` of it) at
+    x = (f_h, f_v, L0) (3, n); ``t_inv`` 1/T, ``scale`` the tension row's scale (m)."""
+    f_h, f_v, l0 = x
+    r = _closed_forms(f_v, f_h, f_h * f_h, l0, planes.gamma)
+    elastic = l0 / planes.ea
+    return np.array([(elastic + r.q) * f_h - planes.span_h,
+                     elastic * (f_v - (0.5 * planes.gamma) * l0) + r.s - planes.span_v,
+                     scale * (r.t_b * t_inv - 1.0)]), r
+
+
+def _column_norm(res):
+    return np.sqrt(np.add.reduce(res * res, axis=0))
+
+
+def _adjugate_solve(x, planes: _Planes, r: _Parts, rhs_h, rhs_v):
+    """det(C) and adj(C) [g, rhs] (2, 2, n) in the plane: g = dl/dL0 = (1/EA + 1/T_A)(F - gamma
+    L0 e) (the tension vector at A), C = [c_hh c_he; c_he c_ee] the in-plane flexibility
+    (module docstring), so that C^-1 g = out[:, 0]/det and C^-1 rhs = out[:, 1]/det (rhs_h,
+    rhs_v arrays (n,))."""
+    f_h, f_v, l0 = x
+    c_nn, k, m = _flexibility_terms(r, l0, planes.ea)
+    kh2 = k * r.h2
+    c_hh, c_ee, c_he = c_nn - kh2, l0 / planes.ea + kh2, -m * f_h
+    g = 1.0 / planes.ea + 1.0 / r.t_a
+    b = np.array([[g * f_h, rhs_h], [g * (f_v - planes.gamma * l0), rhs_v]])
+    adj = np.array([c_ee * b[0] - c_he * b[1], c_hh * b[1] - c_he * b[0]])
+    return c_hh * c_ee - c_he * c_he, adj
+
+
+def _newton_step(x, res, planes: _Planes, row_scale, r: _Parts) -> np.ndarray:
+    """Newton step (3, n) of (f_h, f_v, L0) for ``res``: [C g; d^T 0] step = -res with C the
+    in-plane flexibility, g = dl/dL0, d = row_scale F/|F| (the 4x4 system of the module
+    docstring without its normal row, which is zero in the plane), by block elimination with
+    u = C^-1 res_l, w = C^-1 g: dL0 = (res_T - d.u)/(d.w), dF = -u - w dL0."""
+    det, adj = _adjugate_solve(x, planes, r, res[0], res[1])        # adj[:, 0] = det w, ...
+    d_adj = (row_scale / r.t_b) * (x[0] * adj[0] + x[1] * adj[1])   # (d.w, d.u) det
+    dl0 = (res[2] * det - d_adj[1]) / d_adj[0]
+    return np.concatenate([-(adj[:, 1] + adj[:, 0] * dl0) / det, dl0[None]])
 
 
 def solve(cables: CableSet, max_iterations: int = 60,
@@ -239,8 +392,10 @@ def solve(cables: CableSet, max_iterations: int = 60,
     tension vector F - gamma L0 e/2 lies along the chord, its first-order closure: F = c l/|l|
     + gamma L0/2 e, c = -g cos + sqrt(T^2 - g^2 sin^2), g = gamma L0/2, cos = e.l/|l|; used
     where g < T/4, else the straight cable F = -T u), or from ``start`` (a nearby solution,
-    e.g. of the previous pose or tension: its end-force direction and L0, the force rescaled
-    to |F| = T_i) where that cable was valid; damped by step halving. Newton stops at a
+    e.g. of the previous pose or tension: its end-force direction in this chord's plane and
+    L0, the force rescaled to |F| = T_i) where that cable was valid and its start is closer;
+    damped by step halving. Newton works in each cable's plane (module docstring: F = f_h h +
+    f_v e, three unknowns f_h, f_v, L0 and three equations, closed-form steps) and stops at a
     residual of ``tolerance`` max(L, 1) (the end closure in m, the tension scaled by L); a
     solution is accepted (valid) below 1e-9 max(L, 1), so a ``tolerance`` up to 1e-10 changes
     no verdict, only the last digits of F and L0.
@@ -249,58 +404,59 @@ def solve(cables: CableSet, max_iterations: int = 60,
     ``min_tension_ratio`` times T_i (slack: it cannot hold its own weight). ``max_iterations``
     and ``max_halvings`` (of each Newton step) bound the work, e.g. for cheap existence probes.
     """
-    up, gamma = up_and_weight(cables)
-    ea = float(cables.ea_n)
-    chord = np.asarray(cables.chord_m, dtype=float)
-    length = cables.length_m
-    unit = chord / length[:, None]
-    target = -chord
+    planes = _planes(cables)
+    gamma, ea, length = planes.gamma, planes.ea, planes.length
     tension = np.asarray(cables.tension_n, dtype=float)
-    n = chord.shape[0]
+    n = length.size
     live = tension > 0
     t_safe = np.where(live, tension, 1.0)
-    scale = length
-    force = -t_safe[:, None] * unit
-    l0 = length / (1.0 + t_safe / ea)
-    if gamma > 0.0:
-        g = 0.5 * gamma * l0
-        cos = -(unit @ up)                                  # e . l/|l|, l = -chord
-        disc = t_safe * t_safe - g * g * (1.0 - cos * cos)
-        taut = (g < 0.25 * t_safe) & (disc > 0.0)
-        c = -g * cos + np.sqrt(np.where(taut, disc, 1.0))
-        force = np.where(taut[:, None], -c[:, None] * unit + g[:, None] * up, force)
-    res, parts = _residual(force, l0, target, t_safe, ea, gamma, up, scale)
-    norm = _row_norm(res)
-    if start is not None:   # per cable the better start: the nearby solution or the parabola
-        direction = start.force_n / _row_norm(start.force_n)[:, None]
-        near_f = t_safe[:, None] * direction
-        near_l = start.unstrained_length_m
-        with np.errstate(all='ignore'):
-            near_r, near_p = _residual(near_f, near_l, target, t_safe, ea, gamma, up, scale)
-            near_n = _row_norm(near_r)
-        warm = start.valid & live & (near_n < norm)
-        if warm.all():
-            force, l0, res, norm, parts = near_f, near_l, near_r, near_n, near_p
-        elif warm.any():
-            force = np.where(warm[:, None], near_f, force)
-            l0 = np.where(warm, near_l, l0)
-            res = np.where(warm[:, None], near_r, res)
-            norm = np.where(warm, near_n, norm)
-            parts = None
-    tol = tolerance * np.maximum(length, 1.0)
+    t_inv = 1.0 / t_safe
+    cos_h, cos_v = planes.span_h / length, planes.span_v / length      # l/|l| in the plane
+    x = np.array([t_safe * cos_h, t_safe * cos_v, length / (1.0 + t_safe / ea)])
     with np.errstate(all='ignore'):       # trial states past slack give inf/nan: rejected
-        force, l0, res, iterations, parts = _newton(force, l0, res, norm, tol, live, target,
-                                                    t_safe, ea, gamma, up, scale,
-                                                    max_iterations, max_halvings, parts)
+        if gamma > 0.0:
+            g = 0.5 * gamma * x[2]
+            disc = t_safe * t_safe - g * g * (1.0 - cos_v * cos_v)
+            taut = (g < 0.25 * t_safe) & (disc > 0.0)
+            c = -g * cos_v + np.sqrt(np.where(taut, disc, 1.0))
+            x[:2] = np.where(taut, [c * cos_h, c * cos_v + g], x[:2])
+        if start is None:
+            res, parts = _residual(x, planes, t_inv, length)
+            norm = _column_norm(res)
+        else:   # per cable the better start: the nearby solution or the parabola
+            f_h, f_v = _in_plane(np.asarray(start.force_n, dtype=float), planes)
+            rescale = t_safe / np.sqrt(f_h * f_h + f_v * f_v)
+            both = np.concatenate([x, [f_h * rescale, f_v * rescale,
+                                       start.unstrained_length_m]], axis=1)
+            twice = planes.doubled
+            res, parts = _residual(both, twice, np.concatenate([t_inv, t_inv]),
+                                   twice.length)                 # both starts in one pass
+            norm = _column_norm(res)
+            warm = start.valid & live & (norm[n:] < norm[:n])
+            if warm.all():
+                x, res, norm = both[:, n:], res[:, n:], norm[n:]
+                parts = _Parts(*(field[n:] for field in parts))
+            elif warm.any():
+                x = np.where(warm, both[:, n:], both[:, :n])
+                res = np.where(warm, res[:, n:], res[:, :n])
+                norm = np.where(warm, norm[n:], norm[:n])
+                parts = None
+            else:
+                x, res, norm = both[:, :n], res[:, :n], norm[:n]
+                parts = _Parts(*(field[:n] for field in parts))
+        tol = tolerance * planes.tol_scale
+        x, res, iterations, parts = _newton(x, res, norm, tol, live, planes, t_inv, length,
+                                            max_iterations, max_halvings, parts)
         if parts is None:
-            parts = _parts(force, l0, gamma, up)
+            parts = _residual(x, planes, t_inv, length)[1]
         t_a, t_min = parts.t_a, parts.min_tension
-    residual = _row_norm(res[:, :3])
-    residual = np.where(np.isfinite(residual), residual, np.inf)
-    tension_error = np.abs(res[:, 3]) / scale
-    converged = live & (residual <= 1e-9 * np.maximum(length, 1.0)) & (tension_error <= 1e-9)
-    taut = t_min > min_tension_ratio * t_safe
+        residual = np.sqrt(res[0] * res[0] + res[1] * res[1])
+        residual = np.where(np.isfinite(residual), residual, np.inf)
+        tension_error = np.abs(res[2]) / length
+        converged = live & (residual <= 1e-9 * planes.tol_scale) & (tension_error <= 1e-9)
+        taut = t_min > min_tension_ratio * t_safe
     valid = converged & taut
+    l0 = x[2]
     reasons = []
     for i in (range(n) if not valid.all() else ()):
         if not live[i]:
@@ -313,19 +469,22 @@ def solve(cables: CableSet, max_iterations: int = 60,
             reasons.append(f'cable {i} is slack: with end tension {tension[i]:.3g} N its '
                            f'tension falls to {t_min[i]:.3g} N along the cable (weight '
                            f'{gamma * l0[i]:.3g} N)')
-    force = np.where(valid[:, None], force, -np.maximum(tension, 0.0)[:, None] * unit)
-    l0 = np.where(valid, l0, length)
-    return CatenaryState(force, l0, np.where(valid, t_a, np.maximum(tension, 0.0)),
-                         np.where(valid, t_min, np.minimum(tension, 0.0)), residual, iterations,
-                         valid, tuple(reasons))
+    force = _lift(x[0], x[1], planes)
+    if not valid.all():
+        force = np.where(valid[:, None], force, -np.maximum(tension, 0.0)[:, None] * planes.unit)
+        l0 = np.where(valid, l0, length)
+        t_a = np.where(valid, t_a, np.maximum(tension, 0.0))
+        t_min = np.where(valid, t_min, np.minimum(tension, 0.0))
+    return CatenaryState(force, l0, t_a, t_min, residual, iterations, valid, tuple(reasons))
 
 
 def _jacobian(force, l0, ea, gamma, up, row_scale, parts: _Parts | None = None
               ) -> np.ndarray:
-    """(n, 4, 4) derivative of (end position, row_scale |F|) with respect to (F, L0).
+    """(n, 4, 4) derivative of (end position, row_scale |F|) with respect to (F, L0), in 3D.
 
     d l = C dF + (1/EA + 1/T_A) (F - gamma L0 e) dL0 (C of :func:`flexibility`; F - gamma L0 e
     is the tension vector at A) and d|F| = F.dF/|F|; ``parts`` those of (F, L0) if known.
+    The reference of the in-plane steps (:func:`_newton_step`, :func:`tension_sensitivity`).
     """
     r = _parts(force, l0, gamma, up) if parts is None else parts
     jac = np.zeros(force.shape[:-1] + (4, 4))
@@ -340,77 +499,73 @@ def tension_sensitivity(state: CatenaryState, cables: CableSet) -> tuple[np.ndar
     """(dF/dT (n, 3), dL0/dT (n,)): how each solved catenary changes with its end tension.
 
     The chord is held: C dF + (dl/dL0) dL0 = 0 and F.dF/|F| = dT (the 4x4 system of
-    :func:`_jacobian`). The force on the platform changes by -dF/dT per newton of end tension:
-    along the end tangent by 1, plus a turn of the tangent as the sag changes. Finite only for
-    valid cables away from the fold where T stops falling as L0 grows (NaN elsewhere).
+    :func:`_jacobian`; in the cable's plane with w = C^-1 dl/dL0 and d = F/|F|:
+    dL0/dT = -1/(d.w), dF/dT = w/(d.w)). The force on the platform changes by -dF/dT per
+    newton of end tension: along the end tangent by 1, plus a turn of the tangent as the sag
+    changes. Finite only for valid cables away from the fold where T stops falling as L0
+    grows (NaN elsewhere).
     """
-    up, gamma = up_and_weight(cables)
-    n = state.force_n.shape[0]
-    jac = _jacobian(state.force_n, state.unstrained_length_m, float(cables.ea_n), gamma, up,
-                    np.ones(n))
-    rhs = np.zeros((n, 4))
-    rhs[:, 3] = 1.0
-    out = np.full((n, 4), np.nan)
-    ok = state.valid & np.all(np.isfinite(jac), axis=(1, 2))
-    ok &= np.abs(np.linalg.det(np.where(ok[:, None, None], jac, np.eye(4)))) > 0.0
-    if np.any(ok):
-        out[ok] = np.linalg.solve(jac[ok], rhs[ok][..., None])[..., 0]
-    return out[:, :3], out[:, 3]
+    planes = _planes(cables)
+    f_h, f_v = _in_plane(np.asarray(state.force_n, dtype=float), planes)
+    x = (f_h, f_v, np.asarray(state.unstrained_length_m, dtype=float))
+    with np.errstate(all='ignore'):
+        r = _closed_forms(f_v, f_h, f_h * f_h, x[2], planes.gamma)
+        det, adj = _adjugate_solve(x, planes, r, f_h, f_v)          # rhs unused here
+        w = adj[:, 0]                                                 # det C^-1 g
+        d_w = (f_h * w[0] + f_v * w[1]) / r.t_b                       # det (d.w)
+        out = np.concatenate([w / d_w, (-det / d_w)[None]])
+    ok = state.valid & np.isfinite(out).all(axis=0)
+    out = np.where(ok, out, np.nan)
+    return _lift(out[0], out[1], planes), out[2]
 
 
-def _newton(force, l0, res, norm, tol, live, target, t_safe, ea, gamma, up, scale,
-            max_iterations, max_halvings=30, parts=None):
-    """Damped Newton iterations of :func:`solve` (vectorised over cables).
+def _newton(x, res, norm, tol, live, planes: _Planes, t_inv, scale, max_iterations,
+            max_halvings=30, parts=None):
+    """Damped Newton iterations of :func:`solve` on x = (f_h, f_v, L0) (3, n), vectorised over
+    cables; the caller ignores floating-point warnings.
 
-    ``parts``: :func:`_parts` of the starting (F, L0) or None; returned likewise for the final
+    ``parts``: the :class:`_Parts` of the starting x or None; returned likewise for the final
     state (None where it is not known: the caller computes them), so that one evaluation per
-    iteration serves the residual, the next Jacobian and the final tensions."""
-    n = force.shape[0]
+    iteration serves the residual, the next step and the final tensions."""
     iterations = 0
+    row_scale = scale * t_inv
     for iterations in range(1, max_iterations + 1):
         todo = live & (norm > tol)
-        if not np.any(todo):
+        if not todo.any():
             break
         if parts is None:
-            parts = _parts(force, l0, gamma, up)
-        jac = _jacobian(force, l0, ea, gamma, up, scale / t_safe, parts)
-        ok = todo & np.all(np.isfinite(jac), axis=(1, 2))
-        step = np.zeros((n, 4))
-        for i in ([ok] if np.any(ok) else []):
-            try:
-                step[i] = np.linalg.solve(jac[i], -res[i][..., None])[..., 0]
-            except np.linalg.LinAlgError:   # one singular cable: solve them one by one
-                for k in np.flatnonzero(i):
-                    try:
-                        step[k] = np.linalg.solve(jac[k], -res[k])
-                    except np.linalg.LinAlgError:
-                        ok[k] = False
-        alpha = np.ones(n)
-        new_force, new_l0, new_res = force, l0, res
-        improve = np.zeros(n, dtype=bool)
+            parts = _residual(x, planes, t_inv, scale)[1]
+        step = _newton_step(x, res, planes, row_scale, parts)
+        ok = todo & np.isfinite(step).all(axis=0)
+        step = np.where(ok, step, 0.0)
+        alpha = np.ones(x.shape[1])
+        new_x, new_res = x, res
+        improve = np.zeros(x.shape[1], dtype=bool)
         whole = None      # the parts of the first full step where every cable takes it
         for halving in range(max_halvings):
-            trial_f = force + alpha[:, None] * step[:, :3]
-            trial_l = l0 + alpha * step[:, 3]
-            trial_r, trial_p = _residual(trial_f, np.where(trial_l > 0, trial_l, l0), target,
-                                         t_safe, ea, gamma, up, scale)
-            trial_n = _row_norm(trial_r)
-            good = ok & ~improve & (trial_l > 0) & np.isfinite(trial_n) & (
+            trial = x + alpha * step
+            positive = trial[2] > 0
+            if not positive.all():
+                trial[2] = np.where(positive, trial[2], x[2])   # evaluated at the old L0
+            trial_r, trial_p = _residual(trial, planes, t_inv, scale)
+            trial_n = _column_norm(trial_r)
+            good = ok & ~improve & positive & np.isfinite(trial_n) & (
                 (trial_n < norm) | (trial_n <= tol))
-            new_force = np.where(good[:, None], trial_f, new_force)
-            new_l0 = np.where(good, trial_l, new_l0)
-            new_res = np.where(good[:, None], trial_r, new_res)
-            improve |= good
-            if np.all(improve | ~ok):
+            if halving == 0 and (good | ~ok).all():
                 # all at the first trial: cables without a step (step 0) sit where they were
-                whole = trial_p if halving == 0 else None
+                new_x, new_res, improve, whole = trial, trial_r, good, trial_p
+                break
+            new_x = np.where(good, trial, new_x)
+            new_res = np.where(good, trial_r, new_res)
+            improve |= good
+            if (improve | ~ok).all():
                 break
             alpha = np.where(improve, alpha, 0.5 * alpha)
-        if not np.any(improve):
+        if not improve.any():
             break
-        force, l0, res, parts = new_force, new_l0, new_res, whole
-        norm = _row_norm(res)
-    return force, l0, res, iterations, parts
+        x, res, parts = new_x, new_res, whole
+        norm = trial_n if whole is not None else _column_norm(res)
+    return x, res, iterations, parts
 
 
 # --------------------------------------------------------------------------- models
@@ -428,19 +583,17 @@ def _placeholder(cables: CableSet) -> np.ndarray:
                             placeholder_tension(cables) / length)
 
 
-def _stiffness(force, l0, cables, ok, parts: _Parts | None = None) -> np.ndarray:
-    """K = C^-1 (symmetrised) where ``ok``, the placeholder spring elsewhere; ``parts`` of
-    (force, l0) where the caller has them."""
-    up, gamma = up_and_weight(cables)
+def _stiffness(f_h, f_v, l0, cables, ok, parts: _Parts | None = None) -> np.ndarray:
+    """K = C^-1 where ``ok`` (:func:`_plane_stiffness` of the in-plane end forces f_h, f_v),
+    the placeholder spring elsewhere; ``parts`` of (f_h, f_v, l0) where the caller has them."""
+    planes = _planes(cables)
+    with np.errstate(all='ignore'):
+        if parts is None:
+            parts = _closed_forms(f_v, f_h, f_h * f_h, l0, planes.gamma)
+        stiffness = _plane_stiffness(f_h, f_v, l0, planes, parts)
     if ok.all():
-        stiffness = np.linalg.inv(flexibility(force, l0, cables.ea_n, gamma, up, parts))
-        return 0.5 * (stiffness + np.swapaxes(stiffness, -1, -2))
-    stiffness = _placeholder(cables)
-    if np.any(ok):
-        flex = flexibility(force[ok], l0[ok], cables.ea_n, gamma, up)
-        stiffness[ok] = np.linalg.inv(flex)
-        stiffness[ok] = 0.5 * (stiffness[ok] + np.swapaxes(stiffness[ok], -1, -2))
-    return stiffness
+        return stiffness
+    return np.where(ok[:, None, None], stiffness, _placeholder(cables))
 
 
 #: Newton tolerance of the paper catenary's existence test (:func:`solve`: same verdicts)
@@ -453,11 +606,13 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     ``elements_per_cable`` is ignored (massless, one node). Invalid (placeholder spring
     stiffness, a warning) where T_i <= 0 or the tension along the cable would reach zero.
     """
-    up, gamma = up_and_weight(cables)
+    planes = _planes(cables)
+    gamma = planes.gamma
     tension = np.asarray(cables.tension_n, dtype=float)
-    length = cables.length_m
-    force = -tension[:, None] * cables.unit
-    parts = _parts(force, length, gamma, up)
+    length = planes.length
+    f_h, f_v = tension * planes.span_h / length, tension * planes.span_v / length   # -T u
+    with np.errstate(all='ignore'):
+        parts = _closed_forms(f_v, f_h, f_h * f_h, length, gamma)
     t_min = parts.min_tension
     exists = solve(cables, tolerance=EXISTENCE_TOLERANCE).valid if gamma > 0 else tension > 0
     ok = (tension > 0) & (t_min > 1e-6 * np.abs(tension)) & exists
@@ -473,20 +628,22 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
         else:
             warnings.append(f'cable {i} is slack: tension {tension[i]:.3g} N at the platform '
                             f'cannot hold the {gamma * length[i]:.3g} N cable hanging below it')
-    return massless_assembly('catenary', _stiffness(force, length, cables, ok, parts),
-                             tension[:, None] * cables.unit, bool(np.all(ok)), warnings)
+    return massless_assembly('catenary', _stiffness(f_h, f_v, length, cables, ok, parts),
+                             tension[:, None] * planes.unit, bool(np.all(ok)), warnings)
 
 
 def paper_misclosure(cables: CableSet) -> np.ndarray:
     """(n,) m: how far the paper's assumed catenary (L0 = chord, end force T_i along the chord)
-    ends from the anchor, |l(F, L0) - l_chord| of Eq. 25; 0 for weightless cables up to the
-    elastic stretch T L/EA that L0 = chord leaves out."""
-    up, gamma = up_and_weight(cables)
+    ends from the anchor, |l(F, L0) - l_chord| of Eq. 25 (in the cables' planes: the closure
+    rows of :func:`_residual`); 0 for weightless cables up to the elastic stretch T L/EA that
+    L0 = chord leaves out."""
+    planes = _planes(cables)
     tension = np.maximum(np.asarray(cables.tension_n, dtype=float), 0.0)
-    force = -tension[:, None] * cables.unit
+    length = planes.length
+    x = np.array([tension * planes.span_h / length, tension * planes.span_v / length, length])
     with np.errstate(all='ignore'):
-        end = end_position(force, cables.length_m, float(cables.ea_n), gamma, up)
-    return np.linalg.norm(end + np.asarray(cables.chord_m), axis=1)
+        res = _residual(x, planes, np.ones_like(length), length)[0]
+    return np.sqrt(res[0] * res[0] + res[1] * res[1])
 
 
 def state_of(cables: CableSet) -> CatenaryState:
@@ -498,6 +655,7 @@ def state_of(cables: CableSet) -> CatenaryState:
 def build_exact(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     """``catenary_exact``: Newton-consistent L0 and end force per cable (see :func:`solve`)."""
     state = state_of(cables)
-    stiffness = _stiffness(state.force_n, state.unstrained_length_m, cables, state.valid)
+    f_h, f_v = _in_plane(state.force_n, _planes(cables))
+    stiffness = _stiffness(f_h, f_v, state.unstrained_length_m, cables, state.valid)
     return massless_assembly('catenary_exact', stiffness, -state.force_n,
                              bool(np.all(state.valid)), state.reasons)

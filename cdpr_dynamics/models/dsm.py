@@ -40,79 +40,130 @@ import numpy as np
 from cdpr_dynamics.models.base import (AxialTransverse, CableAssembly, CableSet,
                                        axial_transverse, slack_warnings)
 
-_SERIES_BELOW = 1e-3     # |z| below which z cot z is summed as its series
+_SERIES_BELOW = 0.25     # |z^2| up to which z cot z is summed as its series (to 2e-16)
 _LARGE_IMAG = 30.0       # |Im z| above which cot z uses exp(2iz) (cos, sin would overflow)
+# z cot z = 1 - sum_n 2 zeta(2n) (z/pi)^2n = sum_n (-1)^n 4^n B_2n z^2n / (2n)!, n = 0..9
+_SERIES = (1.0, -1 / 3, -1 / 45, -2 / 945, -1 / 4725, -2 / 93555, -1382 / 638512875,
+           -4 / 18243225, -3617 / 162820783125, -87734 / 38979295480125)
 
 
-def z_cot_z(z2) -> np.ndarray:
+def z_cot_z(z2, root=None) -> np.ndarray:
     """``z cot z`` as a function of ``z2 = z^2`` (any shape), stable everywhere.
 
-    Real ``z2`` (undamped) in real arithmetic: z / tan z (z^2 >= 0) or y coth y = y + 2y /
-    expm1(2y) (z^2 = -y^2 < 0). Complex ``z2`` (damped): z = x + iy (y >= 0) by a real square
-    root and cot z = (sin x cos x - i sinh y cosh y) / (sin^2 x + sinh^2 y) (three real
-    transcendental calls, no cancellation near 0); for y large cot z = i (1 + q)/(q - 1),
-    q = exp(2iz), |q| < e^-60, which never overflows. Series 1 - z^2/3 - z^4/45 - 2 z^6/945
-    near 0. Infinite (a pole) where sin z = 0, z = j pi. Real in, real out.
+    |z^2| <= :data:`_SERIES_BELOW` (e.g. every axial wave below a few hundred Hz): its Taylor
+    series in z^2 to the 18th power (:data:`_SERIES`, the next term below 2e-16 there), by
+    Horner, no transcendental call. Elsewhere real ``z2`` (undamped) in real arithmetic: z /
+    tan z (z^2 >= 0) or y coth y = y + 2y / expm1(2y) (z^2 = -y^2 < 0); complex ``z2``
+    (damped): z = x + iy (y >= 0) by a real square root (or ``root`` = (x, y), arrays like
+    ``z2``, where the caller has it) and cot z = (sin x cos x - i sinh y cosh y) / (sin^2 x +
+    sinh^2 y) (three real transcendental calls, no cancellation); for y large
+    cot z = i (1 + q)/(q - 1), q = exp(2iz), |q| < e^-60, which never overflows.
+    Infinite (a pole) where sin z = 0, z = j pi. Real in, real out.
     """
     z2 = np.asarray(z2)
+    small = np.abs(z2) <= _SERIES_BELOW
+    if root is not None:                  # mostly far from 0: the few small ones patched
+        out = _cot_parts(*root)
+        if small.any():
+            out[small] = _series(z2[small])
+        return out
     if z2.dtype.kind != 'c':
-        return _z_cot_z_real(z2.astype(float))
-    return _z_cot_z_complex(z2)
+        z2 = z2.astype(float)
+    far = _z_cot_z_complex if z2.dtype.kind == 'c' else _z_cot_z_real
+    if small.all():
+        return _series(z2)
+    if not small.any():
+        return far(z2)
+    out = np.empty_like(z2)
+    out[small] = _series(z2[small])
+    out[~small] = far(z2[~small])
+    return out
+
+
+def upper_root(z2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y): the square root x + iy of complex ``z2`` with y >= 0, real arithmetic:
+    t = sqrt((|z2| + |Re z2|)/2), h = |Im z2| / (2t), x = sign(Im z2) (t or h), y = h or t."""
+    a, b = np.ascontiguousarray(z2.real), np.ascontiguousarray(z2.imag)
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        norm = a * a
+        norm += b * b
+        np.sqrt(norm, out=norm)                               # |z2|
+        if not np.all(np.isfinite(norm)):                     # |z2| > 1e154: no squares
+            norm = np.hypot(a, b)
+        pos = a >= 0.0
+        norm += np.abs(a, out=a)
+        norm *= 0.5
+        t = np.sqrt(norm, out=norm)
+        h = np.abs(b)
+        h *= 0.5
+        h /= t
+        x = np.where(pos, t, h)
+        np.copysign(x, b, out=x)
+        return x, np.where(pos, h, t)
 
 
 def _z_cot_z_real(z2: np.ndarray) -> np.ndarray:
-    """:func:`z_cot_z` of real z^2."""
+    """:func:`z_cot_z` of real z^2 away from 0 (no series)."""
     root = np.sqrt(np.abs(z2))
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         if np.all(z2 >= 0.0):
-            out = root / np.tan(root)
-        else:
-            out = np.empty_like(z2)
-            pos = z2 >= 0.0
-            out[pos] = root[pos] / np.tan(root[pos])
-            y = root[~pos]
-            out[~pos] = y + 2.0 * y / np.expm1(2.0 * y)
-    small = np.abs(z2) < _SERIES_BELOW ** 2
-    if small.any():
-        out[small] = _series(z2[small])
+            return root / np.tan(root)
+        out = np.empty_like(z2)
+        pos = z2 >= 0.0
+        out[pos] = root[pos] / np.tan(root[pos])
+        y = root[~pos]
+        out[~pos] = y + 2.0 * y / np.expm1(2.0 * y)
     return out
 
 
 def _z_cot_z_complex(z2: np.ndarray) -> np.ndarray:
-    """:func:`z_cot_z` of complex z^2, real arithmetic but for the large-Im z branch."""
-    a, b = z2.real, z2.imag
+    """:func:`z_cot_z` of complex z^2 away from 0, real arithmetic but for large Im z."""
+    return _cot_parts(*upper_root(z2))
+
+
+def _cot_parts(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """z cot z of z = x + iy (y >= 0): (x sc + y shch + i (y sc - x shch)) / (s^2 + sh^2),
+    sc = sin x cos x, sh = sinh y, shch = sinh y cosh y from e = expm1(y) (no cancellation
+    near 0); for y > :data:`_LARGE_IMAG` i z (1 + q)/(q - 1), q = exp(2iz)."""
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        norm2 = a * a + b * b
-        norm = np.sqrt(norm2)
-        if not np.all(np.isfinite(norm)):                    # |z2| > 1e154: no squares
-            norm = np.hypot(a, b)
-        t = np.sqrt(0.5 * (norm + np.abs(a)))                # z = x + iy = sqrt(z2), y >= 0
-        h = 0.5 * np.abs(b) / t
-        pos = a >= 0.0
-        x = np.copysign(np.where(pos, t, h), b)
-        y = np.where(pos, h, t)
         s, c = np.sin(x), np.cos(x)
         e = np.expm1(y)
-        sh = e * (e + 2.0) / (2.0 * (e + 1.0))                # sinh y
-        shch = sh * (sh + 1.0 / (e + 1.0))                     # sinh y cosh y
-        sc = s * c
-        den = s * s + sh * sh
-        out = np.empty(z2.shape, dtype=complex)
-        out.real = (x * sc + y * shch) / den
-        out.imag = (y * sc - x * shch) / den
+        e_plus = e + 1.0
+        sh = e + 2.0
+        sh *= e
+        sh /= e_plus
+        sh *= 0.5                                             # sinh y
+        shch = np.reciprocal(e_plus, out=e_plus)
+        shch += sh
+        shch *= sh                                            # sinh y cosh y
+        sc = c
+        sc *= s
+        den = np.multiply(s, s, out=s)
+        den += np.square(sh, out=sh)
+        out = np.empty(x.shape, dtype=complex)
+        part = x * sc
+        part += y * shch
+        part /= den
+        out.real = part
+        part = np.multiply(y, sc, out=part)
+        part -= x * shch
+        part /= den
+        out.imag = part
     large = y > _LARGE_IMAG
     if large.any():
         zl = x[large] + 1j * y[large]
         q = np.exp(2j * zl)
         out[large] = zl * 1j * (1.0 + q) / (q - 1.0)
-    small = norm < _SERIES_BELOW ** 2
-    if small.any():
-        out[small] = _series(z2[small])
     return out
 
 
 def _series(z2):
-    return 1.0 - z2 / 3.0 - z2 * z2 / 45.0 - 2.0 * z2 ** 3 / 945.0
+    """The Taylor series of z cot z in z^2 (:data:`_SERIES`), Horner, real or complex."""
+    out = np.full_like(z2, _SERIES[-1])
+    for c in _SERIES[-2::-1]:
+        out *= z2
+        out += c
+    return out
 
 
 def z_cot_z_reference(z2) -> np.ndarray:
@@ -122,7 +173,7 @@ def z_cot_z_reference(z2) -> np.ndarray:
     z = np.sqrt(z2)
     z = np.where(z.imag < 0.0, -z, z)        # z cot z is even: take Im z >= 0
     out = np.empty_like(z)
-    small = np.abs(z) < _SERIES_BELOW
+    small = np.abs(z) < 1e-3
     large = ~small & (z.imag > _LARGE_IMAG)
     mid = ~small & ~large
     out[small] = _series(z2[small])
@@ -133,6 +184,27 @@ def z_cot_z_reference(z2) -> np.ndarray:
     q = np.exp(2j * zl)
     out[large] = zl * 1j * (1.0 + q) / (q - 1.0)
     return out
+
+
+def _taut_waves(lam: np.ndarray, ratio: np.ndarray) -> np.ndarray:
+    """:func:`z_cot_z` of z^2 = lam ratio for complex ``lam`` (nl,) and ``ratio`` > 0 (...):
+    (..., nl). Rows whose largest |z^2| is within :data:`_SERIES_BELOW` (the axial waves) are
+    the series throughout; the others use z = sqrt(lam) sqrt(ratio), one root per lam."""
+    flat = ratio.ravel()
+    series = flat * np.abs(lam).max(initial=0.0) <= _SERIES_BELOW
+    if series.all():
+        return _series(lam * ratio[..., None])
+    rows = np.flatnonzero(~series)
+    x, y = upper_root(lam)
+    root = np.sqrt(flat[rows, None])
+    far = z_cot_z(lam * flat[rows, None], (root * x, root * y))
+    if rows.size == flat.size:
+        return far.reshape(ratio.shape + (lam.size,))
+    out = np.empty((flat.size, lam.size), dtype=complex)
+    out[rows] = far
+    rows = np.flatnonzero(series)
+    out[rows] = _series(lam * flat[rows, None])
+    return out.reshape(ratio.shape + (lam.size,))
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,8 +245,12 @@ class ContinuousCables:
         zero = stiffness == 0.0
         safe = np.where(zero, 1.0, stiffness)
         length = self.length_m
-        out = (safe / length)[..., None] * self.wave(
-            lam * (self.mass_per_length_kg_m * length ** 2 / safe)[..., None])
+        ratio = self.mass_per_length_kg_m * length ** 2 / safe                # z^2 / lam
+        if self.wave is z_cot_z and lam.dtype.kind == 'c' and np.all(ratio > 0.0):
+            wave = _taut_waves(lam, ratio)
+        else:
+            wave = self.wave(lam * ratio[..., None])
+        out = (safe / length)[..., None] * wave
         if zero.any():
             out[zero] = 0.0
         return out

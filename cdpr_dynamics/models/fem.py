@@ -142,8 +142,10 @@ def uniform_chain_blocks(unit, k_axial, k_transverse, m_element, n) -> ChainBloc
     node_count[-1] = 1.0
     k_diag = node_count[None, :, None, None] * ke[:, None]
     m_diag = 2.0 * node_count[None, :, None, None] * me[:, None]
-    k_off = np.repeat(-ke[:, None], n - 1, axis=1)
-    m_off = np.repeat(me[:, None], n - 1, axis=1)
+    k_off = np.empty((ke.shape[0], n - 1, 3, 3))       # every element's block: broadcast
+    k_off[...] = -ke[:, None]                           # copies (np.repeat's numbers)
+    m_off = np.empty_like(k_off)
+    m_off[...] = me[:, None]
     return ChainBlocks(k_diag, k_off, m_diag, m_off)
 
 
@@ -173,8 +175,10 @@ def build(cables: CableSet, elements_per_cable: int = 16,
 
         return CableAssembly('fem', n, end_stiffness, cables.tension_n[:, None] * unit, blocks,
                              valid=not warnings, warnings=warnings)
-    k_both = np.stack([np.broadcast_to(k_axial, k_transverse.shape), k_transverse])  # (2, n)
-    m_both = np.broadcast_to(m_element, k_both.shape)
+    k_both = np.empty((2,) + k_transverse.shape)          # (2, n): axial, transverse
+    k_both[0], k_both[1] = k_axial, k_transverse
+    m_both = np.empty_like(k_both)
+    m_both[...] = m_element
     chains = AxialTransverse(unit, lambda lam: chain_end_stiffness_last(k_both, m_both, n, lam))
     return CableAssembly('fem', n, chains.end_stiffness, cables.tension_n[:, None] * unit, blocks,
                          valid=not warnings, warnings=warnings, decoupled=chains)

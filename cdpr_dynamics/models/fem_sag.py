@@ -180,40 +180,61 @@ def _series_3d(ee, axial, transverse, mass, lam) -> np.ndarray:
     return out
 
 
+def _plane_points(state: catenary.CatenaryState, planes, n: int):
+    """((p_h, p_v) (ncab, n + 1), (f_h, f_v) (ncab,)): the points of :func:`node_positions` in
+    each cable's plane (point = p_h h + p_v e, :mod:`~cdpr_dynamics.models.catenary`, "In the
+    plane") and the end force in it; ``planes`` the cables' ``catenary._planes``."""
+    f_h, f_v = catenary._in_plane(state.force_n, planes)
+    gamma = planes.gamma
+    sigma = state.unstrained_length_m[:, None] * ((n - np.arange(n + 1)) / n)[None, :]
+    h, v = f_h[:, None], f_v[:, None]
+    r = catenary._closed_forms(v, h, h * h, sigma, gamma)      # l(F, sigma) of Eq. 25
+    elastic = sigma / planes.ea
+    return (-(elastic + r.q) * h, -(elastic * (v - (0.5 * gamma) * sigma) + r.s)), (f_h, f_v)
+
+
 def node_positions(state: catenary.CatenaryState, cables: CableSet, n: int) -> np.ndarray:
     """Points of each cable relative to its platform attachment, (ncab, n + 1, 3).
 
     Point 0 is the anchor, point n the platform end; point k at unstrained arc length
-    L0 (n - k)/n from the platform end, on the elastic catenary.
+    L0 (n - k)/n from the platform end, on the elastic catenary (-l(F, sigma) of Eq. 25).
     """
-    up, gamma = catenary.up_and_weight(cables)
-    sigma = state.unstrained_length_m[:, None] * (n - np.arange(n + 1))[None, :] / n
-    force = np.broadcast_to(state.force_n[:, None, :], sigma.shape + (3,))
-    return -catenary.end_position(force, sigma, cables.ea_n, gamma, up)
+    planes = catenary._planes(cables)
+    with np.errstate(all='ignore'):
+        (p_h, p_v), _ = _plane_points(state, planes, n)
+    return p_h[..., None] * planes.horizontal[:, None, :] + p_v[..., None] * planes.up
 
 
 def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = None):
     """The chains on the sagged shapes (straight where the catenary is invalid).
 
     Returns (ChainBlocks, element data for :func:`series_end_stiffness`, CatenaryState).
+    The shapes are computed in each cable's plane (:func:`_plane_points`) and lifted to 3D.
     """
     state = catenary.state_of(cables) if state is None else state
-    up, gamma = catenary.up_and_weight(cables)
-    chord = np.asarray(cables.chord_m, dtype=float)
+    planes = catenary._planes(cables)
     with np.errstate(all='ignore'):          # invalid cables: replaced just below
-        points = node_positions(state, cables, n)
-    straight = chord[:, None, :] * ((n - np.arange(n + 1)) / n)[None, :, None]
-    points = np.where(state.valid[:, None, None], points, straight)
-    d = np.diff(points, axis=1)                                       # (ncab, n, 3)
-    chord_e = np.linalg.norm(d, axis=2)
-    e = d / chord_e[..., None]
-    l0 = state.unstrained_length_m / n                                # (ncab,)
+        (p_h, p_v), (f_h, f_v) = _plane_points(state, planes, n)
+    valid = state.valid
+    if not valid.all():
+        fraction = (n - np.arange(n + 1)) / n          # the chord, straight
+        p_h = np.where(valid[:, None], p_h, -planes.span_h[:, None] * fraction)
+        p_v = np.where(valid[:, None], p_v, -planes.span_v[:, None] * fraction)
+    d_h, d_v = np.diff(p_h, axis=1), np.diff(p_v, axis=1)                 # (ncab, n)
+    chord_e = np.sqrt(d_h * d_h + d_v * d_v)
+    e = (d_h / chord_e)[..., None] * planes.horizontal[:, None, :] \
+        + (d_v / chord_e)[..., None] * planes.up                          # (ncab, n, 3)
+    l0 = state.unstrained_length_m / n                                    # (ncab,)
     sigma_mid = l0[:, None] * (n - 0.5 - np.arange(n))[None, :]
-    t_mid = np.linalg.norm(state.force_n[:, None, :] - gamma * sigma_mid[..., None] * up, axis=2)
-    t_mid = np.where(state.valid[:, None], t_mid, catenary.placeholder_tension(cables)[:, None])
+    a1 = f_v[:, None] - planes.gamma * sigma_mid
+    t_mid = np.sqrt((f_h * f_h)[:, None] + a1 * a1)
+    if not valid.all():
+        t_mid = np.where(valid[:, None], t_mid, catenary.placeholder_tension(cables)[:, None])
     ee = e[..., :, None] * e[..., None, :]
-    ke = (cables.ea_n / l0)[:, None, None, None] * ee \
-        + (t_mid / chord_e)[..., None, None] * (np.eye(3) - ee)        # (ncab, n, 3, 3)
+    axial = cables.ea_n / l0
+    transverse = t_mid / chord_e
+    ke = (axial[:, None] - transverse)[..., None, None] * ee \
+        + transverse[..., None, None] * np.eye(3)                          # (ncab, n, 3, 3)
     k_diag = ke.copy()
     k_diag[:, :-1] += ke[:, 1:]
     k_off = -ke[:, 1:]
@@ -221,8 +242,8 @@ def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = 
     m_diag = np.repeat(4.0 * m0, n, axis=1)
     m_diag[:, -1] = 2.0 * m0[:, 0]
     m_off = np.repeat(m0, n - 1, axis=1)
-    elements = (np.stack([(e[..., i] * e[..., k]).T for i, k in _UPPER]),
-                np.full(len(l0), cables.ea_n) / l0, (t_mid / chord_e).T,
+    rows, cols = zip(*_UPPER)
+    elements = (ee[:, :, rows, cols].transpose(2, 1, 0), axial, transverse.T,
                 cables.mass_per_length_kg_m * l0 / 6.0)
     return ChainBlocks(k_diag, k_off, m_diag, m_off), elements, state
 
