@@ -158,3 +158,19 @@ def test_batched_generalized_eigh_equals_scipy():
         np.testing.assert_allclose(vectors[k].T @ b[k] @ vectors[k], np.eye(4), atol=1e-12)
         np.testing.assert_allclose(np.abs(vectors[k]), np.abs(ref_vectors), rtol=1e-9,
                                    atol=1e-12)
+
+
+def test_fem_sag_modes_of_a_symmetric_robot_are_classified_by_counting(monkeypatch):
+    """The paper robot's mirror-image cables have equal clamped-chain frequencies to the last
+    bit (the element stiffness is formed as EA/l ee + T/l (I - ee) for that): every pole's
+    modes are found at rest on the platform, so fem_sag 64 never falls back to the
+    eigensolver, and the repeated frequencies stay repeated."""
+    from cdpr_dynamics import modes as modes_module
+
+    def no_eigensolver(*args, **kwargs):
+        raise AssertionError('fell back to the eigensolver')
+    monkeypatch.setattr(modes_module, '_eigen', no_eigensolver)
+    found = modes(_system(PAPER, None, 'fem_sag', 64), PAPER.f_max_hz)
+    assert found.frequency_hz.size == 27 and found.platform_hz.size == 3
+    values, counts = np.unique(found.frequency_hz, return_counts=True)
+    assert counts.max() >= 2                                 # mirror-image cables: exact pairs

@@ -233,8 +233,11 @@ def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = 
     ee = e[..., :, None] * e[..., None, :]
     axial = cables.ea_n / l0
     transverse = t_mid / chord_e
-    ke = (axial[:, None] - transverse)[..., None, None] * ee \
-        + transverse[..., None, None] * np.eye(3)                          # (ncab, n, 3, 3)
+    # (not (axial - transverse) ee + transverse I: its rounding differs between mirror-image
+    # cables, which splits the paper robot's equal clamped-chain frequencies by ~1e-13 and
+    # sends the modes' classification to the eigensolver)
+    ke = axial[:, None, None, None] * ee \
+        + transverse[..., None, None] * (np.eye(3) - ee)                  # (ncab, n, 3, 3)
     k_diag = ke.copy()
     k_diag[:, :-1] += ke[:, 1:]
     k_off = -ke[:, 1:]
