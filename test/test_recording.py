@@ -583,6 +583,44 @@ def test_bad_files_give_one_line_errors(tmp_path):
     assert error(mangled)
 
 
+CLOSE_KEEPS_WAITING = """
+import sys, time
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.duration import Duration
+from rclpy.qos import QoSProfile
+from cdpr_dynamics.recording.recorder import Recorder
+rclpy.init()
+node = rclpy.create_node('close_drain_recorder')
+source = rclpy.create_node('close_drain_source')
+publisher = source.create_publisher(PoseStamped, 'pose', QoSProfile(depth=1000))
+recorder = Recorder(node, sys.argv[1], ['pose'], force=True)
+deadline = time.monotonic() + 30.0
+while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
+    recorder.poll()          # discovery only: nothing is published yet
+    time.sleep(0.05)         # the period of that poll, not a synchronisation
+for i in range(700):
+    msg = PoseStamped()
+    msg.pose.position.x = float(i)
+    publisher.publish(msg)
+assert publisher.wait_for_all_acked(Duration(seconds=30.0))   # all in the reader's queue
+summary = recorder.close()   # never spun: every message still waits on the subscription
+print(summary.topics)
+"""
+
+
+def test_close_writes_what_waits_on_the_subscriptions(ros_env, tmp_path):
+    """Stopping a recorder whose subscriptions still hold messages (it lagged: a busy machine,
+    a flood) writes them before the file is finished; nothing delivered is dropped."""
+    path = tmp_path / 'drain.mcap'
+    result = subprocess.run([PYTHON, '-c', CLOSE_KEEPS_WAITING, str(path)], env=ros_env,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    by_topic, _ = rosbags_read(path)
+    xs = [int(m.pose.position.x) for _, m in by_topic['/pose']]
+    assert xs == list(range(700))
+
+
 def test_cli_refuses_to_overwrite(ros_env, tmp_path):
     target = tmp_path / 'precious.mcap'
     target.write_bytes(b'what the user recorded')

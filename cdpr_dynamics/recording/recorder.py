@@ -28,6 +28,7 @@ from msg_adapters import mcap_schema
 _TICK_S = 0.1        # how often the chunk age and the ROS graph are checked
 _DISCOVERY_S = 0.2
 _TAKE_BATCH = 256    # messages taken per callback straight from the subscription
+_DRAIN_BATCHES = 64  # at most this many batches per topic taken on close (16384 messages)
 
 
 class _Topic:
@@ -225,20 +226,21 @@ class Recorder:
             elif mono - self._chunk_started_ns >= self._chunk_interval_ns:
                 self._flush_locked()
 
-    def _take_more(self, topic: _Topic) -> None:
+    def _take_more(self, topic: _Topic) -> int:
         """Take the messages already waiting on this subscription without a trip through the
         executor (its per-message cost is ~15 times that of writing); bounded, so timers and
-        other topics still get their turn."""
+        other topics still get their turn. How many it took."""
         subscription = topic.subscription
-        for _ in range(_TAKE_BATCH):
+        for count in range(_TAKE_BATCH):
             try:
                 with subscription.handle:
                     taken = subscription.handle.take_message(subscription.msg_type, True)
             except Exception:  # noqa: BLE001 - destroyed meanwhile: the executor resumes
-                return
+                return count
             if taken is None:
-                return
+                return count
             self._write(topic, taken[0], taken[1])
+        return _TAKE_BATCH
 
     def _flush_locked(self) -> None:
         self._file.flush()   # closes the open chunk (if it has messages), writes it out
@@ -288,6 +290,16 @@ class Recorder:
 
     def close(self) -> RecordingSummary:
         """Stop recording and finish the file (rosbag2 metadata, summary, indexes). Idempotent."""
+        with self._lock:
+            if self._closed:
+                return self._summary
+        # what reached the subscriptions before the stop is the user's: write it first (a
+        # subscriber that lagged holds up to its queue depth; bounded by _DRAIN_BATCHES)
+        for topic in list(self._topics.values()):
+            if topic.subscription is not None:
+                for _ in range(_DRAIN_BATCHES):
+                    if self._take_more(topic) < _TAKE_BATCH:
+                        break
         with self._lock:
             if self._closed:
                 return self._summary
