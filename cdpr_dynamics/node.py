@@ -514,6 +514,9 @@ class DynamicsNode(Node):
                 update = self.predictor.apply(result)
             except NUMERIC_ERRORS as exc:
                 self._reject(self.pose_health, 'state', f'pose rejected: {first_line(exc)}')
+            except Exception as exc:  # noqa: BLE001 - a bug must not stop the node (as inline)
+                self._reject(self.pose_health, 'internal',
+                             f'{type(exc).__name__}: {clip(exc)}')
             else:
                 self._rebuilt(update)
                 self._swap_s.append(time.monotonic() - request.asked_s)
