@@ -65,8 +65,8 @@ def test_poses_faster_than_their_statics(background):
     cannot follow them.)"""
     h = background
     before = h.prediction_count
-    accepted = int(h.status('pose input')['values']['accepted'])
-    before_model = h.status('model')['values']
+    accepted = int(h.fresh_status('pose input')['values']['accepted'])
+    before_model = h.fresh_status('model')['values']
     rebuilds, superseded = int(before_model['rebuilds']), int(before_model['poses_superseded'])
     stamps = []
     for k in range(40):
@@ -89,9 +89,8 @@ def test_poses_faster_than_their_statics(background):
     # from the one before, was either solved and swapped in (a rebuild) or replaced by a newer
     # one; counted by the node (cable_tensions, latched with depth 1, may skip one of two
     # published back to back)
-    since = len(h.diagnostics)
-    accepted = int(h.status('pose input', since)['values']['accepted']) - accepted
-    model = h.status('model', since)['values']
+    accepted = int(h.fresh_status('pose input')['values']['accepted']) - accepted
+    model = h.fresh_status('model')['values']
     swapped = int(model['rebuilds']) - rebuilds
     superseded = int(model['poses_superseded']) - superseded
     assert swapped + superseded == accepted, (model, accepted)
