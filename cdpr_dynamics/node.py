@@ -647,7 +647,7 @@ class DynamicsNode(Node):
         self._modal_stale = False
         try:
             found = modes_job(*self._modes_args())
-            self._modes_period_s = max(MODES_PERIOD_S, found['seconds'] / MODES_DUTY)
+            self._pace_modes(found['seconds'])
             self._apply_modes(found)
         except NUMERIC_ERRORS as exc:
             self._modal_warnings = [f'natural frequencies failed: {first_line(exc)}']
@@ -670,7 +670,7 @@ class DynamicsNode(Node):
         self._modes_future = None
         try:
             found, error = future.result(), ''
-            self._modes_period_s = max(MODES_PERIOD_S, found['seconds'] / MODES_DUTY)
+            self._pace_modes(found['seconds'])
         except Exception as exc:  # noqa: BLE001 - JobFailed, WorkerError: reported, kept going
             found, error = None, f'natural frequencies failed: {first_line(exc)}'
         if self._modes_revision != self.revision:      # rebuilt since: ask again
@@ -682,6 +682,11 @@ class DynamicsNode(Node):
             self._apply_modes(found)
         self._diag_dirty = True
         self._log_model_warnings()    # damping, time step may have changed
+
+    def _pace_modes(self, seconds: float) -> None:
+        """The next refresh waits at least MODES_PERIOD_S and ``seconds`` / MODES_DUTY, so
+        that refreshes taking ``seconds`` each use at most MODES_DUTY of a core."""
+        self._modes_period_s = max(MODES_PERIOD_S, seconds / MODES_DUTY)
 
     def _apply_modes(self, found: dict) -> None:
         self._platform_hz = found['platform_hz']

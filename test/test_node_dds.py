@@ -651,7 +651,7 @@ def test_runtime_parameter_changes(paper):
     results = paper.set_parameters(model__method='spring')
     assert results[0].successful, results[0].reason
     paper.mirror.set_settings(paper.settings.replace(method='spring'))
-    model = paper.status('model')['values']
+    model = paper.fresh_status('model')['values']
     assert model['method'] == 'spring' and model['dofs'] == '3'
     for _ in range(20):
         paper.wrench([0.0, 0.0, 1000.0])                     # the spring model predicts now
@@ -686,7 +686,7 @@ def test_runtime_parameter_changes(paper):
     results = paper.set_parameters(damping__stiffness_factor=0.05, node__pose_tolerance_m=1e-4)
     assert all(r.successful for r in results)
     paper.mirror.set_settings(paper.settings)
-    assert paper.status('model')['values']['method'] == 'fem'
+    assert paper.fresh_status('model')['values']['method'] == 'fem'
 
 
 def test_model_warnings_reach_the_log(ros):
@@ -700,15 +700,15 @@ def test_model_warnings_reach_the_log(ros):
             return node.log_path.read_text()
         wait_until(lambda: 'model: sag:' in log(), TIMEOUT_S, 'the sag warning in the log')
         moved = node.settings.initial_position_m + np.array([0.03, 0.0, 0.0])
-        rebuilds = int(node.status('model')['values']['rebuilds'])
+        rebuilds = int(node.fresh_status('model')['values']['rebuilds'])
         node.pose(moved.tolist())             # a rebuild whose warnings are of the same kinds
-        status = node.status('model')
+        status = node.fresh_status('model')
         assert int(status['values']['rebuilds']) == rebuilds + 1, status
         assert 'sag: ' in status['values']['warnings'], status
         assert log().count('model: sag:') == 1, log()
         before = len(log())
         assert node.set_parameters(model__method='catenary_exact')[0].successful
-        status = node.status('model')
+        status = node.fresh_status('model')
         assert status['message'].startswith('catenary_exact'), status
         if ': ' in status['message']:         # another set of warnings: logged, the first one
             first = status['message'].split(': ', 1)[1][:60]
