@@ -340,7 +340,13 @@ def _controller_line(title: str, ctl: dict) -> str:
             f"{ctl['predicted']} ({100 * ctl['predicted_fraction']:.2f} %; with the rejected "
             f"{100 * ctl['handled_fraction']:.2f} %), poses accepted "
             f"{ctl['poses_accepted']}; pose update p50/p99 {ctl['update_ms_p50']:.2f}/"
-            f"{ctl['update_ms_p99']:.2f} ms{swap}")
+            f"{ctl['update_ms_p99']:.2f} ms{swap}{_cpu_text(ctl)}")
+
+
+def _cpu_text(ctl: dict) -> str:
+    cpu = ctl.get('cpu_percent') or {}
+    return ('; CPU ' + ', '.join(f'{key} {value:.0f} %' for key, value in cpu.items())
+            + ' of a core' if cpu else '')
 
 
 @interruptible('cdpr_bench')

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -483,12 +484,16 @@ def _beside_node_and_recorder(tag: str, config, parameters, child_args: list,
         recorder = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.record',
                                      '--output', str(path)], env=env, stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True)
+        before, start = _cpu_seconds(node, recorder), time.monotonic()
         out = subprocess.run([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node']
                              + child_args, env=env, capture_output=True, text=True,
                              timeout=timeout_s)
+        after, elapsed = _cpu_seconds(node, recorder), time.monotonic() - start
         if out.returncode != 0:
             raise RuntimeError((out.stderr or out.stdout).strip().splitlines()[-1])
         sent = json.loads(out.stdout.strip().splitlines()[-1])
+        sent['cpu_percent'] = {key: round(100 * (after[key] - before[key]) / elapsed, 1)
+                               for key in before if key in after}
         _wait_for_quiet_counts(path, time.time_ns(), 30.0)
     finally:
         if recorder is not None:
@@ -496,6 +501,19 @@ def _beside_node_and_recorder(tag: str, config, parameters, child_args: list,
         stop_process(node)
         reservation.release()
     return path, sent
+
+
+def _cpu_seconds(node, recorder) -> dict:
+    """CPU time (user + system, s) used so far by the node and the recorder processes (Linux
+    /proc; those it cannot read are left out)."""
+    seconds = {}
+    for key, proc in (('node', node), ('recorder', recorder)):
+        try:
+            fields = Path(f'/proc/{proc.pid}/stat').read_text().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        seconds[key] = (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    return seconds
 
 
 def _wait_for_quiet_counts(path: Path, after_ns: int, timeout_s: float) -> bool:
@@ -545,6 +563,7 @@ def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
     model = last.get('model', {})
     result = {'wrench_hz': wrench_hz, 'pose_hz': pose_hz, 'duration_s': duration_s,
               'published': {'wrench': sent['wrench'], 'pose': sent['pose']},
+              'cpu_percent': sent.get('cpu_percent', {}),
               'recorded': recorded,
               'predicted': int(wrench_in.get('accepted', 0)),
               'poses_accepted': int(pose_in.get('accepted', 0)),

@@ -203,7 +203,8 @@ class Recorder:
     # -- writing ----------------------------------------------------------------------------
 
     def _write(self, topic: _Topic, data: bytes, info) -> None:
-        now = self._clock.now().nanoseconds
+        clock = self._clock        # its Time object costs more than the write below
+        now = clock.now().nanoseconds if clock.ros_time_is_active else time.time_ns()
         sent = 0
         sequence = 0
         if isinstance(info, Mapping):
