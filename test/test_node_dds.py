@@ -863,3 +863,74 @@ def test_demo_fails_with_one_line(tmp_path):
     assert run.returncode == 1
     assert run.stderr.strip() == ('cdpr_demo: error: robot.anchors needs 3 values per cable, '
                                   'got 2 values')
+
+
+INPUT_LOOP = r"""
+import sys, threading, time
+import rclpy
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from cdpr_dynamics.node import InputLoop, LOOP_WAIT_S
+
+rclpy.init()
+node = rclpy.create_node('loop_test', start_parameter_services=False)
+got = {'pose': [], 'wrench': []}
+done = threading.Event()
+
+def on(kind):
+    def callback(msg):
+        got[kind].append(msg.header.stamp.sec)
+        if msg.header.stamp.sec == 999:
+            raise ValueError('a callback failed')
+        if len(got['pose']) == 50 and len(got['wrench']) == 50:
+            done.set()
+    return callback
+
+subs = [node.create_subscription(PoseStamped, 'pose', on('pose'), 100),
+        node.create_subscription(WrenchStamped, 'wrench', on('wrench'), 100)]
+pubs = {'pose': node.create_publisher(PoseStamped, 'pose', 100),
+        'wrench': node.create_publisher(WrenchStamped, 'wrench', 100)}
+deadline = time.monotonic() + 20
+while min(p.get_subscription_count() for p in pubs.values()) < 1:
+    assert time.monotonic() < deadline, 'no discovery'
+    time.sleep(0.01)
+errors = []
+
+def spin():
+    try:
+        InputLoop(node.context, subs).spin()
+    except Exception as exc:
+        errors.append(exc)
+
+thread = threading.Thread(target=spin)
+thread.start()
+for i in range(50):
+    for kind, cls in (('pose', PoseStamped), ('wrench', WrenchStamped)):
+        msg = cls()
+        msg.header.stamp.sec = i
+        pubs[kind].publish(msg)
+assert done.wait(20), got
+assert got == {'pose': list(range(50)), 'wrench': list(range(50))}, got
+msg = WrenchStamped()
+msg.header.stamp.sec = 999
+pubs['wrench'].publish(msg)            # its callback raises: the loop ends with the error
+thread.join(20)
+assert not thread.is_alive() and [str(e) for e in errors] == ['a callback failed'], errors
+errors.clear()
+thread = threading.Thread(target=spin)
+thread.start()
+rclpy.shutdown()                       # the loop sees the shutdown within LOOP_WAIT_S
+start = time.monotonic()
+thread.join(20)
+assert not thread.is_alive() and not errors, errors
+print('stopped after %.3f s (LOOP_WAIT_S %.1f)' % (time.monotonic() - start, LOOP_WAIT_S))
+"""
+
+
+def test_input_loop_serves_its_subscriptions_in_order_and_stops(ros_env):
+    """The node's own pose and wrench loop (InputLoop): every message of both subscriptions
+    reaches its callback in order, an exception in a callback ends the loop with it, and a
+    context shut down ends it too."""
+    result = subprocess.run([sys.executable, '-c', INPUT_LOOP], env=ros_env,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert 'stopped after' in result.stdout
