@@ -203,13 +203,20 @@ class Recorder:
     # -- writing ----------------------------------------------------------------------------
 
     def _write(self, topic: _Topic, data: bytes, info) -> None:
-        clock = self._clock        # its Time object costs more than the write below
-        now = clock.now().nanoseconds if clock.ros_time_is_active else time.time_ns()
-        sent = 0
-        sequence = 0
+        """One message: log time = when the middleware received it (its message info, the
+        system clock), so that a recorder polled in batches or lagging behind logs arrival,
+        not its own take; the node's ROS time where that is simulated, the take's system time
+        where the middleware gives no reception time."""
+        sent = received = sequence = 0
         if isinstance(info, Mapping):
             sent = info.get('source_timestamp') or 0
+            received = info.get('received_timestamp') or 0
             sequence = info.get('publication_sequence_number') or 0
+        clock = self._clock        # its Time object costs more than the write below
+        if clock.ros_time_is_active:
+            now = clock.now().nanoseconds
+        else:
+            now = received if received > 0 else time.time_ns()
         with self._lock:
             if self._closed:
                 return
