@@ -37,6 +37,7 @@ set-up serves per-cable lower bounds.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -84,12 +85,22 @@ class SagStatics:
     step_qp: object = None      # the SQP's warm QP (_StepQP): reused by the next pose
 
 
+#: the ufunc reductions behind ndarray.all/max/sum and np.clip, without their Python wrappers
+#: (the same numbers; the SQP calls them on a few cables many times per pose)
+_all, _max, _sum = np.logical_and.reduce, np.maximum.reduce, np.add.reduce
+
+
+def _clip(x, low, high):
+    """np.clip(x, low, high) for low <= high (the same numbers, NaN kept)."""
+    return np.minimum(np.maximum(x, low), high)
+
+
 def cable_wrench(end_force_n: np.ndarray, lever_m: np.ndarray, ndof: int) -> np.ndarray:
     """Wrench (ndof,) of the cable forces on the platform: sum f_i, then sum r_i x f_i."""
-    force = end_force_n.sum(axis=0)
+    force = _sum(end_force_n, axis=0)
     if ndof == 3:
         return force
-    return np.concatenate([force, cross(lever_m, end_force_n).sum(axis=0)])
+    return np.concatenate([force, _sum(cross(lever_m, end_force_n), axis=0)])
 
 
 def structure_of(direction: np.ndarray, lever_m: np.ndarray, ndof: int) -> np.ndarray:
@@ -164,7 +175,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
     lower = np.full(n, float(t_min_n))
     warnings = []
     tension = np.asarray(cables.tension_n if start is None else start.tension_n, dtype=float)
-    tension = np.clip(tension, lower, t_max_n)
+    tension = _clip(tension, lower, t_max_n)
     state = catenary.solve(cables.with_tension(tension),
                            start=None if start is None else start.state)
     lift = ~state.valid          # and the cables lifted at the previous pose: lifted again here
@@ -174,8 +185,9 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
         lower, state, tension, text = _lift(cables, lift, tension, lower, t_max_n)
         warnings += text
 
-    force_scale = max(float(np.linalg.norm(wrench[:3])), 1e-9 * float(t_max_n))
-    arm = max(float(np.linalg.norm(lever, axis=1).max(initial=0.0)), 1e-3)
+    force = wrench[:3]              # |f| and max |r_i| as np.linalg.norm computes them
+    force_scale = max(math.sqrt(force.dot(force)), 1e-9 * float(t_max_n))
+    arm = max(float(_max(np.sqrt(_sum(lever * lever, axis=1)), initial=0.0)), 1e-3)
     tol = rtol * force_scale * np.where(np.arange(ndof) < 3, 1.0, arm)
     step_tol = OPTIMALITY_RTOL * float(t_max_n)
     qp = None if start is None else start.step_qp        # the previous pose's, if it fits
@@ -186,9 +198,9 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
     rho = 0.0                       # proximal weight: grows while steps are cut, falls after
     iterations = 0
     for iterations in range(1, max_iterations + 1):
-        d_force, d_length = catenary.tension_sensitivity(state, cables.with_tension(tension))
+        d_force, d_length = catenary.tension_sensitivity(state, cables)    # (its chords)
         a_mat = structure_of(-d_force, lever, ndof)
-        if not np.all(np.isfinite(a_mat)):
+        if not _all(np.isfinite(a_mat), axis=None):
             i = int(np.flatnonzero(~np.all(np.isfinite(d_force), axis=1))[0])
             raise StaticsError(f'no sag-consistent tension distribution: cable {i} is at the '
                                f'fold of its catenary (T = {tension[i]:.4g} N: the least '
@@ -199,25 +211,25 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
                                f'{t_max_n:g}] N (sagged cables, SQP iteration {iterations}): '
                                f'{proposal.reason}')
         step = proposal.tension_n - tension
-        size = np.max(np.abs(residual) / tol)
-        if size <= 1.0 and np.abs(step).max() <= step_tol and rho > 0.0:
+        size = _max(np.abs(residual) / tol)
+        if size <= 1.0 and _max(np.abs(step)) <= step_tol and rho > 0.0:
             rho = 0.0           # a proximal step is short by 1/(1 + rho): judge the plain one
             proposal = qp.solve(a_mat, a_mat @ tension - residual, rho, tension)
             step = proposal.tension_n - tension
-        if size <= 1.0 and np.abs(step).max() <= step_tol:
+        if size <= 1.0 and _max(np.abs(step)) <= step_tol:
             return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
                               tuple(warnings), qp)
         alpha = 1.0
         for _ in range(30 if size > 1.0 else FEASIBLE_HALVINGS):
-            trial = np.clip(tension + alpha * step, lower, t_max_n)
+            trial = _clip(tension + alpha * step, lower, t_max_n)
             change = trial - tension        # first-order prediction of the catenaries there
             guess = state._replace(force_n=state.force_n + change[:, None] * d_force,
                                    unstrained_length_m=state.unstrained_length_m
                                    + change * d_length)
             trial_state = catenary.solve(cables.with_tension(trial), start=guess)
-            if trial_state.valid.all():
+            if _all(trial_state.valid):
                 trial_residual = cable_wrench(-trial_state.force_n, lever, ndof) - wrench
-                trial_size = np.max(np.abs(trial_residual) / tol)
+                trial_size = _max(np.abs(trial_residual) / tol)
                 if trial_size <= max((1.0 - 1e-4 * alpha) * size, 1.0):
                     break
             alpha *= 0.5

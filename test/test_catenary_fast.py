@@ -173,3 +173,105 @@ def test_sag_chains_equal_the_3d_assembly(config):
     assert_allclose(blocks.k_diag[:, :-1], ke[:, :-1] + ke[:, 1:], rtol=0, atol=1e-12 * scale)
     assert_allclose(elements[2], (t_mid / length).T, rtol=1e-12)
     assert_allclose(elements[0][1], ee[..., 0, 1].T, rtol=0, atol=1e-14)
+
+
+# --------------------------------------------------------------------- the explicit existence
+
+def random_cables(rng, n, ratio_low, ratio_high, length_low=0.1):
+    """n chords of random direction (vertical both ways among them) and length, end tensions
+    T = ratio gamma L with ratio log-uniform in [ratio_low, ratio_high], EA from 1.6 to 1e12 T."""
+    d = rng.normal(size=(n, 3))
+    d[:6] = [[0, 0, 1], [0, 0, -1], [1e-9, 0, 1], [1e-9, 0, -1], [1e-3, 0, 1], [1e-3, 0, -1]]
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    length = length_low * 10 ** rng.uniform(0.0, 3.0, n)
+    gamma = 10 ** rng.uniform(-2, 1)
+    ratio = ratio_low * (ratio_high / ratio_low) ** rng.uniform(0.0, 1.0, n)
+    ratio[rng.random(n) < 0.3] = ratio_low
+    tension = ratio * gamma * length
+    ea = float(tension.max() * 10 ** rng.uniform(0.2, 12.0))
+    return CableSet(d * length[:, None], tension, ea, gamma, G)
+
+
+def solved_verdict(cables):
+    return catenary.solve(cables, tolerance=catenary.EXISTENCE_TOLERANCE).valid
+
+
+def test_explicit_existence_is_the_solves_verdict():
+    """Where T >= 2 gamma L and L >= 0.1 m the solve finds every catenary (so the explicit test
+    may skip it); elsewhere exists() is the solve's verdict, found or not."""
+    rng = np.random.default_rng(11)
+    for _ in range(16):                                # gamma and EA per set
+        sure = random_cables(rng, 500, catenary.EXPLICIT_EXISTENCE_RATIO, 1e5)
+        assert solved_verdict(sure).all()
+        assert catenary.exists(sure).all()
+    found = missing = 0
+    for _ in range(6):
+        mixed = random_cables(rng, 200, 0.3, 5.0, length_low=0.01)
+        verdict = solved_verdict(mixed)
+        assert np.array_equal(catenary.exists(mixed), verdict)
+        found, missing = found + verdict.sum(), missing + (~verdict).sum()
+    assert found > 200 and missing > 200          # both verdicts are exercised
+
+
+def test_least_spanning_tension_is_well_below_the_explicit_bound():
+    """The least end tension at which a catenary spans a chord (statics.lowest_tension) is at
+    most ~1.05 gamma L over all inclinations (the bound the explicit test relies on)."""
+    from cdpr_dynamics.statics import lowest_tension
+    angle = np.radians(np.linspace(-90.0, 90.0, 37))
+    chords = np.column_stack([np.cos(angle), 0.0 * angle, np.sin(angle)]) * 5.0
+    for ea in (1e3, 1e8):
+        cables = CableSet(chords, np.full(angle.size, 1e-3), ea, 1.0, G)
+        least = lowest_tension(cables, np.ones(angle.size, dtype=bool), 1e4) / 5.0
+        assert least.max() < 1.06 and least.max() > 1.0
+        assert least[angle.size // 2] == pytest.approx(0.7544, abs=2e-3)   # level: u tanh u = 1
+
+
+@pytest.mark.parametrize('config', ['config/paper_cdpr.yaml', 'test/data/rigid_cdpr.yaml',
+                                    'config/heavy_sag_6dof.yaml',
+                                    'config/low_tension_cdpr.yaml'])
+def test_paper_catenary_is_the_one_with_the_solved_existence(config, monkeypatch):
+    """catenary.build with the explicit existence test gives the stiffness, forces, validity and
+    warnings of the build that solves every existence, over random poses and tensions."""
+    from cdpr_dynamics.analysis import equilibrium
+    s = load_settings(config)
+    rng = np.random.default_rng(2)
+    sets = []
+    for _ in range(24):
+        try:
+            eq = equilibrium(s, s.initial_position_m + rng.uniform(-0.3, 0.3, 3))
+        except Exception:
+            continue
+        scale = rng.choice([1.0, 0.05, 0.01, -1.0], size=eq.cables.n_cables, p=[.7, .1, .1, .1])
+        sets += [eq.cables, eq.cables.with_tension(eq.cables.tension_n * scale)]
+    assert len(sets) > 24
+    fast = [catenary.build(c) for c in sets]
+    monkeypatch.setattr(catenary, 'exists', solved_verdict)
+    slow = [catenary.build(c) for c in sets]
+    assert sum(not a.valid for a in slow) > 2
+    for a, b in zip(fast, slow):
+        assert a.valid == b.valid and a.warnings == b.warnings
+        assert np.array_equal(a.static_end_stiffness(), b.static_end_stiffness())
+        assert np.array_equal(a.end_force_n, b.end_force_n)
+
+
+def test_paper_misclosure_is_the_3d_closure():
+    """paper_misclosure against Eq. 25 in 3D at L0 = chord, F = -T u (the paper's catenary)."""
+    for cables in cable_sets():
+        up, gamma = catenary.up_and_weight(cables)
+        end = catenary.end_position(-cables.tension_n[:, None] * cables.unit, cables.length_m,
+                                    cables.ea_n, gamma, up)
+        assert_allclose(catenary.paper_misclosure(cables),
+                        np.linalg.norm(end + cables.chord_m, axis=1), rtol=1e-9, atol=1e-14)
+
+
+def test_paper_robot_catenary_needs_no_solve(monkeypatch):
+    """The paper robot's cables (T >= 170 gamma L) pass the explicit test: no Newton solve."""
+    from cdpr_dynamics.analysis import equilibrium
+    eq = equilibrium(load_settings('config/paper_cdpr.yaml'))
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError('solved')
+    monkeypatch.setattr(catenary, 'solve', no_solve)
+    assert catenary.build(eq.cables).valid
+    with pytest.raises(AssertionError, match='solved'):
+        catenary.build(eq.cables.with_tension(eq.cables.tension_n * 0.001))

@@ -74,6 +74,7 @@ Irvine's sag parameter per cable is :func:`sag_parameter`.
 from __future__ import annotations
 
 import functools
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -83,6 +84,9 @@ from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse
 
 
 # --------------------------------------------------------------------------- closed forms
+
+_all, _any = np.logical_and.reduce, np.logical_or.reduce    # ndarray.all/any without wrappers
+
 
 def _asinhc(x):
     """asinh(x)/x for x >= 0 (numpy's asinh keeps full relative precision near 0: the quotient
@@ -113,7 +117,7 @@ def _closed_forms(v, h_vec, h2, length, gamma) -> _Parts:
     t_b = np.sqrt(h2 + v * v)
     t_a = np.sqrt(h2 + a1 * a1)
     same = v * a1 > 0.0
-    taut = bool(same.all())             # no low point in any cable: one branch (same numbers)
+    taut = _all(same, axis=None)        # no low point in any cable: one branch (same numbers)
     total = v + a1
     p = total / (v * t_a + a1 * t_b)
     if not taut:
@@ -187,8 +191,8 @@ def tensions(force, unstrained_length, gamma, up):
 
 def up_and_weight(cables: CableSet) -> tuple[np.ndarray, float]:
     """Unit up vector and the effective weight per length (0 without gravity)."""
-    g = np.asarray(cables.gravity_m_s2, dtype=float)
-    norm = float(np.linalg.norm(g))
+    g = np.asarray(cables.gravity_m_s2, dtype=float).ravel()
+    norm = math.sqrt(g.dot(g))          # np.linalg.norm's own arithmetic, without its wrapper
     if norm == 0.0:
         return np.array([0.0, 0.0, 1.0]), 0.0
     return -g / norm, float(cables.weight_per_length_n_per_m)
@@ -228,8 +232,9 @@ class _Planes(NamedTuple):
 
     ``horizontal`` (n, 3) the unit h, ``span_h``/``span_v`` (n,) l = -chord as l_h h + l_v e,
     ``hh``, ``he`` (n, 3, 3) h h^T and h e^T + e h^T, ``ee`` (3, 3) e e^T, ``tol_scale``
-    max(L, 1) (m) of the closure tests; ``doubled`` the same with the spans and lengths
-    repeated (2n,), for :func:`_residual` of two starts per cable in one pass."""
+    max(L, 1) (m) of the closure tests, ``cos_h``, ``cos_v`` l/|l| in the plane and ``sin2``
+    1 - cos_v^2 (the parabola start of :func:`solve`); ``doubled`` the same with the spans and
+    lengths repeated (2n,), for :func:`_residual` of two starts per cable in one pass."""
 
     up: np.ndarray
     gamma: float
@@ -243,6 +248,9 @@ class _Planes(NamedTuple):
     he: np.ndarray
     ee: np.ndarray
     tol_scale: np.ndarray
+    cos_h: np.ndarray
+    cos_v: np.ndarray
+    sin2: np.ndarray
     doubled: '_Planes | None' = None     # span_h, span_v, length repeated: two starts at once
 
 
@@ -256,8 +264,8 @@ def _planes(cables: CableSet) -> _Planes:
     gravity = np.asarray(cables.gravity_m_s2, dtype=float)
     key = (float(cables.ea_n), float(cables.weight_per_length_n_per_m))
     for old_chord, old_gravity, old_key, planes in _PLANES:
-        if (old_key == key and old_chord.shape == chord.shape and (old_chord == chord).all()
-                and (old_gravity == gravity).all()):
+        if (old_key == key and old_chord.shape == chord.shape
+                and _all(old_chord == chord, axis=None) and _all(old_gravity == gravity)):
             return planes
     planes = _make_planes(cables, chord)
     _PLANES.insert(0, (chord.copy(), gravity.copy(), key, planes))
@@ -281,9 +289,11 @@ def _make_planes(cables: CableSet, chord: np.ndarray) -> _Planes:
                               axis / np.linalg.norm(axis))
         span_h = np.where(level, span_h, 0.0)
     he = horizontal[:, :, None] * up
+    cos_v = span_v / length
     planes = _Planes(up, gamma, float(cables.ea_n), length, chord / length[:, None], horizontal,
                      span_h, span_v, horizontal[:, :, None] * horizontal[:, None, :],
-                     he + he.transpose(0, 2, 1), up[:, None] * up, np.maximum(length, 1.0))
+                     he + he.transpose(0, 2, 1), up[:, None] * up, np.maximum(length, 1.0),
+                     span_h / length, cos_v, 1.0 - cos_v * cos_v)
     twice = np.concatenate([[span_h, span_v, length]] * 2, axis=1)
     for array in (*planes, twice):       # shared through the cache: read-only
         if isinstance(array, np.ndarray):
@@ -383,6 +393,11 @@ def _newton_step(x, res, planes: _Planes, row_scale, r: _Parts) -> np.ndarray:
     return np.concatenate([-(adj[:, 1] + adj[:, 0] * dl0) / det, dl0[None]])
 
 
+#: a solution of :func:`solve` is accepted at this residual (closure over max(L, 1), tension
+#: relative)
+ACCEPT_TOLERANCE = 1e-9
+
+
 def solve(cables: CableSet, max_iterations: int = 60,
           min_tension_ratio: float = 1e-6, start: CatenaryState | None = None,
           max_halvings: int = 30, tolerance: float = 1e-13) -> CatenaryState:
@@ -397,8 +412,11 @@ def solve(cables: CableSet, max_iterations: int = 60,
     damped by step halving. Newton works in each cable's plane (module docstring: F = f_h h +
     f_v e, three unknowns f_h, f_v, L0 and three equations, closed-form steps) and stops at a
     residual of ``tolerance`` max(L, 1) (the end closure in m, the tension scaled by L); a
-    solution is accepted (valid) below 1e-9 max(L, 1), so a ``tolerance`` up to 1e-10 changes
-    no verdict, only the last digits of F and L0.
+    solution is accepted (valid) at a closure below ``ACCEPT_TOLERANCE`` max(L, 1) and a
+    relative tension error below ``ACCEPT_TOLERANCE``, so on chords of at least
+    ``tolerance``/``ACCEPT_TOLERANCE`` (0.1 m at 1e-10) a ``tolerance`` up to 1e-10 changes no
+    verdict, only the last digits of F and L0 (a shorter chord can stop within ``tolerance``
+    with its tension row, scaled by L, short of acceptance).
     A cable is invalid when T_i <= 0, when Newton does not converge (no catenary with that end
     tension spans the chord) or when the tension somewhere along it is below
     ``min_tension_ratio`` times T_i (slack: it cannot hold its own weight). ``max_iterations``
@@ -411,15 +429,19 @@ def solve(cables: CableSet, max_iterations: int = 60,
     live = tension > 0
     t_safe = np.where(live, tension, 1.0)
     t_inv = 1.0 / t_safe
-    cos_h, cos_v = planes.span_h / length, planes.span_v / length      # l/|l| in the plane
+    cos_h, cos_v = planes.cos_h, planes.cos_v                          # l/|l| in the plane
     x = np.array([t_safe * cos_h, t_safe * cos_v, length / (1.0 + t_safe / ea)])
     with np.errstate(all='ignore'):       # trial states past slack give inf/nan: rejected
         if gamma > 0.0:
             g = 0.5 * gamma * x[2]
-            disc = t_safe * t_safe - g * g * (1.0 - cos_v * cos_v)
+            disc = t_safe * t_safe - g * g * planes.sin2
             taut = (g < 0.25 * t_safe) & (disc > 0.0)
-            c = -g * cos_v + np.sqrt(np.where(taut, disc, 1.0))
-            x[:2] = np.where(taut, [c * cos_h, c * cos_v + g], x[:2])
+            if _all(taut):
+                c = -g * cos_v + np.sqrt(disc)
+                x[0], x[1] = c * cos_h, c * cos_v + g
+            else:
+                c = -g * cos_v + np.sqrt(np.where(taut, disc, 1.0))
+                x[:2] = np.where(taut, [c * cos_h, c * cos_v + g], x[:2])
         if start is None:
             res, parts = _residual(x, planes, t_inv, length)
             norm = _column_norm(res)
@@ -433,10 +455,10 @@ def solve(cables: CableSet, max_iterations: int = 60,
                                    twice.length)                 # both starts in one pass
             norm = _column_norm(res)
             warm = start.valid & live & (norm[n:] < norm[:n])
-            if warm.all():
+            if _all(warm):
                 x, res, norm = both[:, n:], res[:, n:], norm[n:]
                 parts = _Parts(*(field[n:] for field in parts))
-            elif warm.any():
+            elif _any(warm):
                 x = np.where(warm, both[:, n:], both[:, :n])
                 res = np.where(warm, res[:, n:], res[:, :n])
                 norm = np.where(warm, norm[n:], norm[:n])
@@ -453,12 +475,14 @@ def solve(cables: CableSet, max_iterations: int = 60,
         residual = np.sqrt(res[0] * res[0] + res[1] * res[1])
         residual = np.where(np.isfinite(residual), residual, np.inf)
         tension_error = np.abs(res[2]) / length
-        converged = live & (residual <= 1e-9 * planes.tol_scale) & (tension_error <= 1e-9)
+        converged = live & (residual <= ACCEPT_TOLERANCE * planes.tol_scale) & (
+            tension_error <= ACCEPT_TOLERANCE)
         taut = t_min > min_tension_ratio * t_safe
     valid = converged & taut
     l0 = x[2]
     reasons = []
-    for i in (range(n) if not valid.all() else ()):
+    all_valid = _all(valid)
+    for i in (range(n) if not all_valid else ()):
         if not live[i]:
             reasons.append(f'cable {i} is slack (T = {tension[i]:.3g} N <= 0)')
         elif not converged[i]:
@@ -470,7 +494,7 @@ def solve(cables: CableSet, max_iterations: int = 60,
                            f'tension falls to {t_min[i]:.3g} N along the cable (weight '
                            f'{gamma * l0[i]:.3g} N)')
     force = _lift(x[0], x[1], planes)
-    if not valid.all():
+    if not all_valid:
         force = np.where(valid[:, None], force, -np.maximum(tension, 0.0)[:, None] * planes.unit)
         l0 = np.where(valid, l0, length)
         t_a = np.where(valid, t_a, np.maximum(tension, 0.0))
@@ -514,8 +538,9 @@ def tension_sensitivity(state: CatenaryState, cables: CableSet) -> tuple[np.ndar
         w = adj[:, 0]                                                 # det C^-1 g
         d_w = (f_h * w[0] + f_v * w[1]) / r.t_b                       # det (d.w)
         out = np.concatenate([w / d_w, (-det / d_w)[None]])
-    ok = state.valid & np.isfinite(out).all(axis=0)
-    out = np.where(ok, out, np.nan)
+    ok = state.valid & _all(np.isfinite(out), axis=0)
+    if not _all(ok):
+        out = np.where(ok, out, np.nan)
     return _lift(out[0], out[1], planes), out[2]
 
 
@@ -531,40 +556,50 @@ def _newton(x, res, norm, tol, live, planes: _Planes, t_inv, scale, max_iteratio
     row_scale = scale * t_inv
     for iterations in range(1, max_iterations + 1):
         todo = live & (norm > tol)
-        if not todo.any():
+        if not _any(todo):
             break
         if parts is None:
             parts = _residual(x, planes, t_inv, scale)[1]
         step = _newton_step(x, res, planes, row_scale, parts)
-        ok = todo & np.isfinite(step).all(axis=0)
+        ok = todo & _all(np.isfinite(step), axis=0)
         step = np.where(ok, step, 0.0)
-        alpha = np.ones(x.shape[1])
-        new_x, new_res = x, res
-        improve = np.zeros(x.shape[1], dtype=bool)
-        whole = None      # the parts of the first full step where every cable takes it
-        for halving in range(max_halvings):
+        trial = x + step                    # the full step first
+        positive = trial[2] > 0
+        if not _all(positive):
+            trial[2] = np.where(positive, trial[2], x[2])   # evaluated at the old L0
+        trial_r, trial_p = _residual(trial, planes, t_inv, scale)
+        trial_n = _column_norm(trial_r)
+        good = ok & positive & np.isfinite(trial_n) & ((trial_n < norm) | (trial_n <= tol))
+        if _all(good | ~ok):
+            # all at the full step: cables without a step (step 0) sit where they were
+            if not _any(good):
+                break
+            x, res, parts, norm = trial, trial_r, trial_p, trial_n
+            continue
+        # else halve the steps of the cables that did not improve, one halving at a time
+        new_x = np.where(good, trial, x)
+        new_res = np.where(good, trial_r, res)
+        improve = good
+        alpha = np.where(improve, 1.0, 0.5)
+        for _ in range(1, max_halvings):
             trial = x + alpha * step
             positive = trial[2] > 0
-            if not positive.all():
-                trial[2] = np.where(positive, trial[2], x[2])   # evaluated at the old L0
-            trial_r, trial_p = _residual(trial, planes, t_inv, scale)
+            if not _all(positive):
+                trial[2] = np.where(positive, trial[2], x[2])
+            trial_r = _residual(trial, planes, t_inv, scale)[0]
             trial_n = _column_norm(trial_r)
             good = ok & ~improve & positive & np.isfinite(trial_n) & (
                 (trial_n < norm) | (trial_n <= tol))
-            if halving == 0 and (good | ~ok).all():
-                # all at the first trial: cables without a step (step 0) sit where they were
-                new_x, new_res, improve, whole = trial, trial_r, good, trial_p
-                break
             new_x = np.where(good, trial, new_x)
             new_res = np.where(good, trial_r, new_res)
             improve |= good
-            if (improve | ~ok).all():
+            if _all(improve | ~ok):
                 break
             alpha = np.where(improve, alpha, 0.5 * alpha)
-        if not improve.any():
+        if not _any(improve):
             break
-        x, res, parts = new_x, new_res, whole
-        norm = trial_n if whole is not None else _column_norm(res)
+        x, res, parts = new_x, new_res, None
+        norm = _column_norm(res)
     return x, res, iterations, parts
 
 
@@ -598,6 +633,39 @@ def _stiffness(f_h, f_v, l0, cables, ok, parts: _Parts | None = None) -> np.ndar
 
 #: Newton tolerance of the paper catenary's existence test (:func:`solve`: same verdicts)
 EXISTENCE_TOLERANCE = 1e-10
+#: end tension over the weight of a chord's length above which :func:`exists` needs no solve
+EXPLICIT_EXISTENCE_RATIO = 2.0
+
+
+def exists(cables: CableSet) -> np.ndarray:
+    """(n,) bool: whether a taut elastic catenary with end tension T_i spans each chord, the
+    verdict of :func:`solve` at ``EXISTENCE_TOLERANCE`` (the paper catenary's test), decided
+    without the Newton solve where it is foregone.
+
+    Explicit test: T_i >= 2 gamma L_i (the cable's weight over its chord at most half its end
+    tension) and L_i >= EXISTENCE_TOLERANCE/ACCEPT_TOLERANCE = 0.1 m. Such a catenary exists
+    (the least end tension at which one spans a chord, :func:`cdpr_dynamics.statics.
+    lowest_tension`, is at most ~1.05 gamma L, for chords ~60 degrees steep with the platform
+    end on top; gamma L for a vertical one hanging from it; ~0.75 gamma L for a level one),
+    stays taut (its tension is above T_i - gamma L0 > 0 at the ends and H > 0 at a low point)
+    and the solve's taut parabola start (used where gamma L0/2 < T/4, here always) is
+    first-order exact in gamma L/T: Newton converges in a few steps (at most 4 iterations)
+    (``test/test_catenary_fast.py`` compares the verdicts over random chords, inclinations,
+    tensions and EA, and checks the bound on the least tension). The length bound keeps the
+    solve's stopping test (``EXISTENCE_TOLERANCE`` max(L, 1) on the tension row scaled by L)
+    within its acceptance test (``ACCEPT_TOLERANCE`` relative): shorter chords can stop just
+    short of acceptance, a verdict only the solve gives. Where any cable fails the test all
+    are solved (one vectorised solve costs the same for one cable or all); weightless cables
+    exist for T > 0.
+    """
+    planes = _planes(cables)
+    tension = np.asarray(cables.tension_n, dtype=float)
+    if planes.gamma == 0.0:
+        return tension > 0
+    length = planes.length
+    sure = (tension >= EXPLICIT_EXISTENCE_RATIO * planes.gamma * length) & (
+        length >= EXISTENCE_TOLERANCE / ACCEPT_TOLERANCE)
+    return sure if _all(sure) else solve(cables, tolerance=EXISTENCE_TOLERANCE).valid
 
 
 def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
@@ -610,17 +678,15 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     gamma = planes.gamma
     tension = np.asarray(cables.tension_n, dtype=float)
     length = planes.length
-    f_h, f_v = tension * planes.span_h / length, tension * planes.span_v / length   # -T u
-    with np.errstate(all='ignore'):
-        parts = _closed_forms(f_v, f_h, f_h * f_h, length, gamma)
+    f_h, f_v, parts = _paper_catenary(cables)     # T_i <= 0 (clamped to 0 there): invalid
     t_min = parts.min_tension
-    exists = solve(cables, tolerance=EXISTENCE_TOLERANCE).valid if gamma > 0 else tension > 0
-    ok = (tension > 0) & (t_min > 1e-6 * np.abs(tension)) & exists
+    spans = exists(cables)
+    ok = (tension > 0) & (t_min > 1e-6 * np.abs(tension)) & spans
     warnings = []
     for i in np.flatnonzero(~ok):
         if not tension[i] > 0:
             warnings.append(f'cable {i} is slack (T = {tension[i]:.3g} N <= 0)')
-        elif not exists[i]:
+        elif not spans[i]:
             warnings.append(f'cable {i}: no taut elastic catenary with end tension '
                             f'{tension[i]:.3g} N spans its chord of {length[i]:.4g} m (cable '
                             f'weight {gamma * length[i]:.3g} N): the paper\'s catenary assumes '
@@ -638,12 +704,26 @@ def paper_misclosure(cables: CableSet) -> np.ndarray:
     rows of :func:`_residual`); 0 for weightless cables up to the elastic stretch T L/EA that
     L0 = chord leaves out."""
     planes = _planes(cables)
+    f_h, f_v, r = _paper_catenary(cables)
+    elastic = planes.length / planes.ea
+    with np.errstate(all='ignore'):
+        miss_h = (elastic + r.q) * f_h - planes.span_h              # as _residual's rows
+        miss_v = elastic * (f_v - (0.5 * planes.gamma) * planes.length) + r.s - planes.span_v
+    return np.sqrt(miss_h * miss_h + miss_v * miss_v)
+
+
+@functools.lru_cache(maxsize=8)
+def _paper_catenary(cables: CableSet):
+    """(f_h, f_v, :class:`_Parts`) of the paper's assumed catenaries (L0 = chord, end force
+    max(T_i, 0) along the chord, in the cables' planes), kept for the last few CableSets
+    (immutable): the model (:func:`build`) and its misclosure warning ask for the same."""
+    planes = _planes(cables)
     tension = np.maximum(np.asarray(cables.tension_n, dtype=float), 0.0)
     length = planes.length
-    x = np.array([tension * planes.span_h / length, tension * planes.span_v / length, length])
+    f_h, f_v = tension * planes.span_h / length, tension * planes.span_v / length   # -T u
     with np.errstate(all='ignore'):
-        res = _residual(x, planes, np.ones_like(length), length)[0]
-    return np.sqrt(res[0] * res[0] + res[1] * res[1])
+        parts = _closed_forms(f_v, f_h, f_h * f_h, length, planes.gamma)
+    return f_h, f_v, parts
 
 
 def state_of(cables: CableSet) -> CatenaryState:

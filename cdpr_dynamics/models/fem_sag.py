@@ -241,13 +241,13 @@ def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = 
     k_diag = ke.copy()
     k_diag[:, :-1] += ke[:, 1:]
     k_off = -ke[:, 1:]
-    m0 = (cables.mass_per_length_kg_m * l0 / 6.0)[:, None, None, None] * np.eye(3)
+    lumped = cables.mass_per_length_kg_m * l0 / 6.0                      # (ncab,) kg
+    m0 = lumped[:, None, None, None] * np.eye(3)
     m_diag = np.repeat(4.0 * m0, n, axis=1)
     m_diag[:, -1] = 2.0 * m0[:, 0]
     m_off = np.repeat(m0, n - 1, axis=1)
     rows, cols = zip(*_UPPER)
-    elements = (ee[:, :, rows, cols].transpose(2, 1, 0), axial, transverse.T,
-                cables.mass_per_length_kg_m * l0 / 6.0)
+    elements = (ee[:, :, rows, cols].transpose(2, 1, 0), axial, transverse.T, lumped)
     return ChainBlocks(k_diag, k_off, m_diag, m_off), elements, state
 
 
