@@ -35,8 +35,14 @@ from cdpr_dynamics.models.dsm import ContinuousCables
 TOL_HZ = 1e-9           # brackets of the counted frequencies (Hz)
 SECTIONS = 5            # points per bracket and sweep of the multisection
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))   # symmetric 3x3 components
+_UPPER_ROWS, _UPPER_COLS = (np.array(a) for a in zip(*_UPPER))
+_DIAGONAL = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])           # of the 6 components
+_FULL = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])                 # 3x3 row-major from the 6
 _GUARDS = np.array([1e-2, 1e-3, 1e-5, 1e-9])   # brackets around a guess (of the width)
-_SAMPLES = np.concatenate([np.logspace(-9, -1.5, 13), np.linspace(0.05, 0.45, 9)])
+# Newton's starts: samples of Z between the clamped-chain eigenvalues, 9 crowding towards each
+# end (1e-9 to 10^-1.5 of the bracket's width) and 7 across it (13 and 9 before: over ~300
+# states of three robots 7 % more Newton steps, the same frequencies and no fallback)
+_SAMPLES = np.concatenate([np.logspace(-9, -1.5, 9), np.linspace(0.05, 0.45, 7)])
 _FRACTIONS = np.unique(np.concatenate([_SAMPLES, 1.0 - _SAMPLES]))   # of a bracket's width
 NEWTON_STEPS = 40       # safeguarded Newton steps per frequency at most (then multisection)
 STEP = 1e-20            # complex step (relative to lam) of the derivatives Z', S'
@@ -77,7 +83,7 @@ class _UniformInterior:
         self.m_element = 6.0 * blocks.m_off[:, 0, 0, 0]
         self.unit = unit
         self.blocks = blocks
-        self._planes = None
+        self._directions = None
         self.end_stiffness = system.assembly.end_stiffness
 
     def counts(self, lam) -> np.ndarray:
@@ -98,38 +104,28 @@ class _UniformInterior:
         """(J0 per cable, None: Z from the model) or, ``count=False``, (None, S_c(lam))."""
         return (self.counts(lam), None) if count else (None, self.end_stiffness(lam))
 
-    def planes(self) -> np.ndarray:
-        """Bases (ncab, 3, 2) of the transverse planes, computed once."""
-        if self._planes is None:
-            self._planes = _normal_planes(self.unit)
-        return self._planes
-
-    def clamped_ends(self, lam: float, jumps: np.ndarray):
-        """The end reactions of the clamped modes at the eigenvalue ``lam``, ``jumps[c]`` of
-        chain c (:func:`_stacked_ends`), closed form: the last interior node moves
-        v sin(j pi (n-1)/n) / sqrt(m n (2 + cos(j pi/n)) / 6) along the mode's direction v
-        (axial u first, then the transverse plane), j from lam_j = lam; the last element's
-        block O = -(k_a uu^T + k_t (I - uu^T)) - lam (m/6) I gives the reaction
+    def clamped_ends(self, lam: np.ndarray, jumps: np.ndarray):
+        """The end reactions of the clamped modes at the eigenvalues ``lam`` (g,), ``jumps[k, c]``
+        of chain c at lam_k (:func:`_stacked_ends`), closed form and all at once: the last
+        interior node moves v sin(j pi (n-1)/n) / sqrt(m n (2 + cos(j pi/n)) / 6) along the
+        mode's direction v (axial u first, then the transverse plane), j from lam_j = lam; the
+        last element's block O = -(k_a uu^T + k_t (I - uu^T)) - lam (m/6) I gives the reaction
         O^T psi = (-k - lam m/6) psi and the mass coupling (m/6) psi."""
         n = self.n
-        c = (self.rate - 2.0 * lam) / (self.rate + lam)                     # (2, ncab)
+        lam = np.asarray(lam, dtype=float)[:, None, None]                  # (g, 1, 1)
+        c = (self.rate - 2.0 * lam) / (self.rate + lam)                     # (g, 2, ncab)
         j = n * np.arccos(np.clip(c, -1.0, 1.0)) / math.pi
         whole = np.round(j)
         hit = (np.abs(j - whole) < 1e-6) & (whole >= 1) & (whole <= n - 1)
         mass = self.m_element * n * (2.0 + np.cos(whole * math.pi / n)) / 6.0
-        amplitude = np.where(hit, np.sin(whole * math.pi * (n - 1) / n)
-                             / np.sqrt(mass), 0.0)[[0, 1, 1]].T              # (ncab, 3)
+        amplitude = np.where(hit, np.sin(whole * math.pi * (n - 1) / n) / np.sqrt(mass), 0.0)
         sixth = self.m_element / 6.0
-        reaction = (-(self.rate * sixth) - lam * sixth)[[0, 1, 1]].T         # (ncab, 3)
-        directions = np.concatenate([self.unit[:, None], np.swapaxes(self.planes(), 1, 2)],
-                                    axis=1)                                   # (ncab, 3, 3)
-        valid = hit[[0, 1, 1]].T
-        take = valid & (np.cumsum(valid, axis=1) <= np.asarray(jumps)[:, None])
-        last = (amplitude[..., None] * directions)[take]                      # (r, 3)
-        size = np.sqrt((reaction[:, :2] ** 2 * [1.0, 2.0]).sum(axis=1))      # ||O||_F
-        scale = float((size[:, None] * np.abs(amplitude) * take).max(initial=0.0))
-        owner = np.nonzero(take)[0]
-        return reaction[take][:, None] * last, sixth[owner][:, None] * last, owner, scale
+        reaction = -(self.rate * sixth) - lam * sixth                       # (g, 2, ncab)
+        size = np.sqrt(reaction[:, 0] ** 2 + 2.0 * reaction[:, 1] ** 2)      # ||O||_F (g, ncab)
+        if self._directions is None:
+            self._directions = _directions(self.unit)
+        return _closed_form_ends(self._directions, 1.0, jumps, hit, reaction * amplitude,
+                                 sixth * amplitude, size[:, None] * np.abs(amplitude))
 
 
 class _ChainInterior:
@@ -152,11 +148,15 @@ class _ChainInterior:
         local_kd = (ft @ kd @ frames)[..., rows, cols]                    # (ncab, nodes, 6)
         local_ko = (ft[:, :-1] @ ko @ frames[:, 1:]).reshape(kd.shape[0], -1, 9)
         local_mo = (ft[:, :-1] @ mo @ frames[:, 1:]).reshape(kd.shape[0], -1, 9)
-        # per node, lists of (ncab,) components: numpy calls on small contiguous arrays
-        self._kd = [[local_kd[:, k, i].copy() for i in range(6)] for k in range(blocks.nodes)]
-        self._md = [md[:, k, 0, 0].copy() for k in range(blocks.nodes)]   # isotropic: m I
-        self._ko = [[local_ko[:, k, i].copy() for i in range(9)] for k in range(self.interior)]
-        self._mo = [[local_mo[:, k, i].copy() for i in range(9)] for k in range(self.interior)]
+
+        # per node, the components stacked ahead of (frequency, cable): (nodes, 6 or 9, 1, ncab)
+        def stacked(a):
+            return np.ascontiguousarray(np.moveaxis(a, 0, -1))[:, :, None, :]
+
+        self._kd = stacked(local_kd)
+        self._md = stacked(md[:, :, 0, 0][..., None] * _DIAGONAL)         # isotropic: m I
+        self._ko = stacked(local_ko)
+        self._mo = stacked(local_mo)
 
     def poles(self, lam_max: float):
         return None
@@ -167,12 +167,11 @@ class _ChainInterior:
     def sweep(self, lam, count: bool = True):
         """(J0 per cable (nl, ncab) or None, end dynamic stiffness (nl, ncab, 3, 3)), and in
         ``last_det`` the determinant of each chain's last interior pivot; complex ``lam``
-        (a complex step) with ``count=False``. Pivots as their 6 components (nl, ncab)."""
+        (a complex step) with ``count=False``. Pivots as their 6 components stacked,
+        (6, nl, ncab); the coupling blocks as 9 (row-major)."""
         lam = np.asarray(lam)[:, None]                                     # (nl, 1)
-        neg = 0
-        diagonal = (True, False, False, True, False, True)
-        p = [kd - lam * self._md[0] if on else kd + 0.0 * lam
-             for kd, on in zip(self._kd[0], diagonal)]
+        p = self._kd[0] - lam * self._md[0]
+        pivots = np.empty((self.interior, 3) + p.shape[1:], dtype=p.dtype) if count else None
         for k in range(self.interior):
             p00, p01, p02, p11, p12, p22 = p
             l10, l20 = p01 / p00, p02 / p00
@@ -180,23 +179,24 @@ class _ChainInterior:
             l21 = (p12 - l20 * p01) / d1
             d2 = p22 - l20 * p02 - l21 * l21 * d1
             if count:
-                neg = neg + (p00.real < 0).astype(int) + (d1.real < 0) + (d2.real < 0)
-                self.last_det = p00 * d1 * d2    # 0 at the chain's clamped eigenvalues
-            b = [ko - lam * mo for ko, mo in zip(self._ko[k], self._mo[k])]
+                pivots[k, 0], pivots[k, 1], pivots[k, 2] = p00, d1, d2
+            b = self._ko[k] - lam * self._mo[k]                            # (9, nl, ncab)
             y0 = b[0:3]
-            y1 = [b[3 + j] - l10 * y0[j] for j in range(3)]
-            y2 = [b[6 + j] - l20 * y0[j] - l21 * y1[j] for j in range(3)]
-            z0, z1, z2 = [v / p00 for v in y0], [v / d1 for v in y1], [v / d2 for v in y2]
-            kd, md = self._kd[k + 1], self._md[k + 1]
-            p = [kd[n] - (lam * md if i == j else 0.0)
-                 - (y0[i] * z0[j] + y1[i] * z1[j] + y2[i] * z2[j])
-                 for n, (i, j) in enumerate(_UPPER)]
-        out = np.empty(p[0].shape + (3, 3), dtype=p[0].dtype)
-        for v, (i, j) in zip(p, _UPPER):
-            out[..., i, j] = out[..., j, i] = v
-        return (neg if count else None), out
+            y1 = b[3:6] - l10 * y0
+            y2 = b[6:9] - l20 * y0 - l21 * y1
+            z0, z1, z2 = y0 / p00, y1 / d1, y2 / d2
+            rows, cols = _UPPER_ROWS, _UPPER_COLS
+            p = self._kd[k + 1] - lam * self._md[k + 1]
+            p -= y0[rows] * z0[cols] + y1[rows] * z1[cols] + y2[rows] * z2[cols]
+        neg = None
+        if count:
+            neg = (pivots.real < 0).sum(axis=(0, 1))
+            self.last_det = pivots[-1, 0] * pivots[-1, 1] * pivots[-1, 2]   # 0 at the
+            # chain's clamped eigenvalues
+        out = np.moveaxis(p[_FULL], 0, -1)                                 # (nl, ncab, 9)
+        return neg, out.reshape(out.shape[:-1] + (3, 3))
 
-    def clamped_ends(self, lam: float, jumps: np.ndarray):
+    def clamped_ends(self, lam: np.ndarray, jumps: np.ndarray):
         return _stacked_ends(self, lam, jumps)
 
     def clamped_end(self, lam, cable: int, count: int):
@@ -240,6 +240,7 @@ class _ContinuousInterior:
 
     def __init__(self, members: ContinuousCables):
         self.members = members
+        self._directions = None
 
     def counts(self, lam) -> np.ndarray:
         return self.members.fixed_end_mode_count(np.sqrt(np.asarray(lam, dtype=float)),
@@ -258,12 +259,32 @@ class _ContinuousInterior:
         """(J0 per cable, None: Z from the model) or, ``count=False``, (None, S_c(lam))."""
         return (self.counts(lam), None) if count else (None, self.members(lam))
 
-    def clamped_ends(self, lam: float, jumps: np.ndarray):
-        return _stacked_ends(self, lam, jumps)
+    def clamped_ends(self, lam: np.ndarray, jumps: np.ndarray):
+        """:meth:`_UniformInterior.clamped_ends` of continuous cables, closed form: the
+        clamped modes sqrt(2/(mu L)) sin(j pi x/L) (mass normalised) at lam = (j w_1)^2 push
+        the end with k sqrt(2/(mu L)) (j pi/L) along their direction (k = EA axially, T
+        transversely; up to sign), with no end-node mass; the scale is the largest force
+        component."""
+        members = self.members
+        length = members.length_m
+        omega = np.sqrt(np.asarray(lam, dtype=float))[:, None, None]        # (g, 1, 1)
+        j = omega / np.stack(members.fixed_end_fundamentals_rad_s())       # (g, 2, ncab)
+        whole = np.round(j)
+        hit = (np.abs(j - whole) < 1e-6) & (whole >= 1)
+        stiffness = np.stack([np.full(length.shape, members.ea_n), members.tension_n])
+        force = np.where(hit, stiffness * np.sqrt(2.0 / (members.mass_per_length_kg_m * length))
+                         * whole * math.pi / length, 0.0)
+        if self._directions is None:
+            self._directions = _directions(members.unit)
+        return _closed_form_ends(self._directions, np.abs(self._directions).max(axis=2), jumps,
+                                 hit, force, np.zeros_like(force), np.abs(force))
 
-    def clamped_end(self, lam, cable: int, count: int):
-        force = _continuous_clamped_end(self.members, lam, cable, count)
-        return force, np.zeros_like(force), float(np.abs(force).max())
+
+def _groups(lo, up) -> np.ndarray:
+    """(4 + ncab, b) the brackets [lo, up] as groups: centre, J's rise (the multiplicity), lo,
+    up, then J0's rise per chain (the bracket tuples: omega, J, J0 per chain, ...)."""
+    return np.concatenate([np.stack([0.5 * (lo[0] + up[0]), up[1] - lo[1], lo[0], up[0]]),
+                           (up[2] - lo[2]).T])
 
 
 def _inverse_quadratic(f0, f1, f2, x0, x1, x2):
@@ -273,18 +294,24 @@ def _inverse_quadratic(f0, f1, f2, x0, x1, x2):
             + x2 * f0 * f1 / ((f2 - f0) * (f2 - f1)))
 
 
-def _stacked_ends(interior, lam: float, jumps: np.ndarray):
-    """(reactions (r, 3), mass couplings (r, 3), owning cable (r,), scale) of the clamped
-    modes at the eigenvalue ``lam`` of every chain c with ``jumps[c]`` > 0 (that many each,
-    cables ascending): each chain's ``clamped_end`` stacked."""
-    forces, masses, owner, scale = [], [], [], 0.0
-    for c in np.flatnonzero(jumps):
-        force, mass, size = interior.clamped_end(lam, int(c), int(jumps[c]))
+def _stacked_ends(interior, lam: np.ndarray, jumps: np.ndarray):
+    """(reactions (r, 3), mass couplings (r, 3), owning cable (r,), eigenvalue (r,), scale
+    (g,)) of the clamped modes at the eigenvalues ``lam`` (g,) of every chain c with
+    ``jumps[k, c]`` > 0 at lam_k (that many each; eigenvalues, then cables ascending): each
+    chain's ``clamped_end`` stacked."""
+    forces, masses, owner, group = [], [], [], []
+    scale = np.zeros(len(lam))
+    for k, c in zip(*np.nonzero(jumps)):
+        force, mass, size = interior.clamped_end(float(lam[k]), int(c), int(jumps[k, c]))
         forces.append(force.T)
         masses.append(mass.T)
         owner += [c] * force.shape[1]
-        scale = max(scale, size)
-    return np.concatenate(forces), np.concatenate(masses), np.array(owner, dtype=int), scale
+        group += [k] * force.shape[1]
+        scale[k] = max(scale[k], size)
+    if not forces:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int), scale
+    return np.concatenate(forces), np.concatenate(masses), np.array(owner, dtype=int), \
+        np.array(group, dtype=int), scale
 
 
 def _chain_end(blocks, lam, cable: int, last):
@@ -349,7 +376,8 @@ class Counter:
 
     # ---------------------------------------------------------------- the frequencies
     def frequencies(self, f_max_hz, count, tol_hz):
-        """(omega (g,), multiplicity (g,), bracket lo (g,), hi (g,), modes to report): every
+        """(omega (g,), multiplicity (g,), bracket lo (g,), hi (g,), modes to report, J0's rise
+        across each bracket per chain (g, ncab): the clamped-chain eigenvalues in it): every
         distinct frequency below ``f_max_hz`` and the lowest ``count`` (the last group can hold
         more than the report takes).
 
@@ -396,22 +424,22 @@ class Counter:
         found = []
         if poles_w is not None:       # closed-form interiors: Newton on Z's eigenvalues
             done = up[0] - lo[0] <= tol
-            interval = np.flatnonzero(keep)[~done]
+            todo = ~done
+            interval = np.flatnonzero(keep)[todo]
             rows = np.minimum(np.searchsorted(wide, interval), max(wide.size - 1, 0))
             roots = None if not np.array_equal(wide[rows], interval) else self._roots(
-                tuple(a[~done] for a in lo), tuple(a[~done] for a in up), poles_w, tol,
+                tuple(a[todo] for a in lo), tuple(a[todo] for a in up), poles_w, tol,
                 (samples[rows], sampled[rows]))
             if roots is not None:
-                found = [np.stack([0.5 * (lo[0] + up[0]), up[1] - lo[1], lo[0], up[0]])[:, done],
-                         roots]
+                found = [_groups(lo, up)[:, done], roots]
                 lo = up = (np.zeros(0),)
         t = np.arange(1, SECTIONS + 1) / (SECTIONS + 1)
         while lo[0].size:
             done = up[0] - lo[0] <= tol
             if np.any(done):
-                found.append(np.stack([0.5 * (lo[0] + up[0]), up[1] - lo[1], lo[0], up[0]])
-                             [:, done])
-                lo, up = (tuple(a[~done] for a in x) for x in (lo, up))
+                found.append(_groups(lo, up)[:, done])
+                todo = ~done
+                lo, up = (tuple(a[todo] for a in x) for x in (lo, up))
                 if not lo[0].size:
                     break
             width = up[0] - lo[0]
@@ -433,10 +461,13 @@ class Counter:
             keep = (edges[1][:, 1:] > edges[1][:, :-1]) & (edges[0][:, 1:] > edges[0][:, :-1])
             lo = tuple(e[:, :-1][keep] for e in edges)
             up = tuple(e[:, 1:][keep] for e in edges)
+        n_cables = self.system.geometry.n_cables
         if j_lo:
-            found.insert(0, np.array([[0.0], [j_lo], [0.0], [0.0]]))
+            found.insert(0, np.concatenate([[[0.0], [j_lo], [0.0], [0.0]],
+                                            np.zeros((n_cables, 1))]))
         if not found:
-            return np.zeros(0), np.zeros(0, dtype=int), np.zeros(0), np.zeros(0), 0
+            return np.zeros(0), np.zeros(0, dtype=int), np.zeros(0), np.zeros(0), 0, \
+                np.zeros((0, n_cables), dtype=int)
         groups = np.concatenate(found, axis=1)
         groups = groups[:, np.argsort(groups[0], kind='stable')]
         omega, mult = groups[0], groups[1].astype(int)
@@ -445,10 +476,12 @@ class Counter:
         keep = (before < want) | (omega <= limit)
         mult = mult[keep]
         take = int(mult.sum()) if f_max_hz is not None else min(int(mult.sum()), want)
-        return omega[keep], mult, groups[2][keep], groups[3][keep], take
+        return omega[keep], mult, groups[2][keep], groups[3][keep], take, \
+            groups[4:, keep].T.astype(int)
 
     def _roots(self, lo, up, poles_w, tol, sampled):
-        """(4, g) groups [omega, multiplicity, lo, hi] of the frequencies inside pole-free
+        """(4 + ncab, g) groups [omega, multiplicity, lo, hi, J0's rise per chain]
+        (:func:`_groups`) of the frequencies inside pole-free
         brackets (J0 constant across each, closed-form interiors), or None (then multisection).
 
         Inside such a bracket Z(lam) is analytic with Z' = -(mass) negative definite, so its
@@ -463,7 +496,7 @@ class Counter:
         """
         (lo_w, lo_j, lo_0, lo_mu, _), (up_w, up_j, up_0, up_mu, _) = lo, up
         if not lo_w.size:
-            return np.zeros((4, 0))
+            return np.zeros((4 + lo_0.shape[1], 0))
         first = lo_j - lo_0.sum(axis=1)                   # Z's negative eigenvalues at lo
         rise = up_j - lo_j
         if np.any(lo_0 != up_0) or np.any(first < 0) or np.any(first + rise > self.nd):
@@ -499,35 +532,34 @@ class Counter:
             rf = a + (b - a) * g[every, cut - 1] / (g[every, cut - 1] - g[every, cut])
             x = np.where(np.isfinite(x) & (x > a) & (x < b), x,
                          np.where(np.isfinite(rf) & (rf > a) & (rf < b), rf, 0.5 * (a + b)))
-            active = every
-            last = np.full(x.size, np.inf)                       # each task's previous step
+            # the unfinished tasks' data, compacted as tasks finish: ids, iterate, bracket
+            # [a, b], weight terms, eigenvalue index, previous step
+            active = (every, x, a, b, ka, ca, cb, kb, index, np.full(x.size, np.inf))
             for _ in range(NEWTON_STEPS):
-                xa = x[active]
+                ids, xa, a, b, ka, ca, cb, kb, k, before = active
                 z, dz = self.z_slope(xa)
                 values, vectors = np.linalg.eigh(z)
-                k = index[active]
                 rows = np.arange(k.size)
                 mu = values[rows, k]
                 v = vectors[rows, :, k]
                 slope = np.einsum('ti,tij,tj->t', v, dz, v)
-                a[active] = np.where(mu >= 0.0, xa, a[active])
-                b[active] = np.where(mu < 0.0, xa, b[active])
-                left = ka[active] * xa + ca[active]
-                right = cb[active] - kb[active] * xa
+                a = np.where(mu >= 0.0, xa, a)
+                b = np.where(mu < 0.0, xa, b)
+                left = ka * xa + ca
+                right = cb - kb * xa
                 w = left * right
-                new = xa - mu * w / (slope * w + mu * (ka[active] * right - kb[active] * left))
-                new = np.where(np.isfinite(new) & (new >= a[active]) & (new <= b[active]),
-                               new, 0.5 * (a[active] + b[active]))
-                x[active] = new
+                new = xa - mu * w / (slope * w + mu * (ka * right - kb * left))
+                new = np.where(np.isfinite(new) & (new >= a) & (new <= b), new, 0.5 * (a + b))
                 moved = np.abs(np.sqrt(new) - np.sqrt(xa))
-                before = last[active]
+                x[ids] = new                    # (the first xa is x itself: after ``moved``)
                 ahead = moved * (moved / before) ** 2   # the next step, were it quadratic
                 keep = (moved > tol / 4) & ~((ahead < 1e-3 * tol) & (moved < 1e-3 * before)
                                              & (before < np.inf))
-                last[active] = moved
-                active = active[keep]
-                if not active.size:
-                    break
+                active = (ids, new, a, b, ka, ca, cb, kb, k, moved)
+                if not keep.all():
+                    active = tuple(e[keep] for e in active)
+                    if not keep.any():
+                        break
             else:
                 return None
         omega = np.sqrt(x)
@@ -545,10 +577,12 @@ class Counter:
         if np.any(lo_v <= lo_w[owner]) or np.any(hi_v >= up_w[owner]) \
                 or np.any(lo_v[1:] <= hi_v[:-1]):
             return None
-        j = self.count(np.concatenate([lo_v, hi_v]) ** 2)[0].reshape(2, -1)
+        j, j0 = self.count(np.concatenate([lo_v, hi_v]) ** 2)[:2]
+        j = j.reshape(2, -1)
         if np.any(j[0] != below) or np.any(j[1] != below + mult):
             return None
-        return np.stack([centre, mult, lo_v, hi_v])
+        j0 = j0.reshape(2, -1, j0.shape[1])
+        return np.concatenate([np.stack([centre, mult, lo_v, hi_v]), (j0[1] - j0[0]).T])
 
     def z_slope(self, lam):
         """(Z(lam), Z'(lam)), (nl, nd, nd) each, undamped, from one complex step of the
@@ -601,23 +635,29 @@ class Counter:
         return guess
 
 
-def _continuous_clamped_end(members: ContinuousCables, lam, cable, count) -> np.ndarray:
-    """(3, count) end reactions of a continuous cable's clamped modes at ``lam`` (mass
-    normalised sqrt(2/(mu L)) sin(j pi x/L): force k_dir sqrt(2/(mu L)) (j pi/L) along the
-    direction, k_dir = EA axially, T transversely; up to sign)."""
-    mu, length = members.mass_per_length_kg_m, members.length_m[cable]
-    unit = members.unit[cable]
-    axial, transverse = members.fixed_end_fundamentals_rad_s()
-    omega = math.sqrt(lam)
-    columns = []
-    for fundamental, stiffness, directions in (
-            (axial[cable], members.ea_n, unit[:, None]),
-            (transverse[cable], members.tension_n[cable], _normal_planes(unit[None])[0])):
-        j = omega / fundamental
-        if abs(j - round(j)) < 1e-6 and round(j) >= 1:
-            columns.append(directions * stiffness * math.sqrt(2.0 / (mu * length))
-                           * round(j) * math.pi / length)
-    return np.concatenate(columns, axis=1)[:, :count]
+def _closed_form_ends(directions, row_size, jumps, hit, force, mass, size):
+    """:func:`_stacked_ends` from closed-form clamped modes: ``hit``, ``force``, ``mass`` and
+    ``size`` (g, 2, ncab) per eigenvalue, kind (axial, transverse: two directions) and chain,
+    whether a clamped mode of that kind sits at the eigenvalue, its end reaction and mass
+    coupling along each of its directions (``directions`` (ncab, 3, 3), axial row first) and
+    the scale of its reaction's terms per unit ``row_size`` (scalar or (ncab, 3)); ``jumps``
+    (g, ncab) modes taken per chain, directions in order."""
+    def per_row(a):
+        return np.swapaxes(a[:, [0, 1, 1]], 1, 2)                          # (g, ncab, 3)
+
+    valid = per_row(hit)
+    take = valid & (np.cumsum(valid, axis=2) <= np.asarray(jumps)[:, :, None])
+    group, owner = np.nonzero(take)[:2]
+    rows = np.broadcast_to(directions, take.shape + (3,))[take]             # (r, 3)
+    scale = (per_row(size) * row_size * take).max(axis=(1, 2), initial=0.0)
+    return per_row(force)[take][:, None] * rows, per_row(mass)[take][:, None] * rows, owner, \
+        group, scale
+
+
+def _directions(unit) -> np.ndarray:
+    """(n, 3, 3) the clamped modes' directions of straight cables as rows: the axial u, then
+    the basis of the transverse plane (:func:`_normal_planes`)."""
+    return np.concatenate([unit[:, None], np.swapaxes(_normal_planes(unit), 1, 2)], axis=1)
 
 
 def _normal_planes(unit) -> np.ndarray:
@@ -626,6 +666,6 @@ def _normal_planes(unit) -> np.ndarray:
     unit = np.asarray(unit, dtype=float)
     first = np.eye(3)[np.argmin(np.abs(unit), axis=1)]
     first = first - np.sum(first * unit, axis=1, keepdims=True) * unit
-    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    first /= np.sqrt(np.einsum('ci,ci->c', first, first))[:, None]
     second = unit[:, [1, 2, 0]] * first[:, [2, 0, 1]] - unit[:, [2, 0, 1]] * first[:, [1, 2, 0]]
     return np.stack([first, second], axis=2)

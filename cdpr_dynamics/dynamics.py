@@ -20,8 +20,13 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.linalg.blas import dsbmv as _sbmv
 from scipy.linalg.lapack import dgesv as _gesv, dpbtrf as _pbtrf, dpbtrs as _pbtrs
+
+try:     # y += A x of a CSR matrix (scipy.sparse's kernel since scipy 0.7; private module)
+    from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
+except ImportError:          # pragma: no cover - a scipy without it: the public product
+    def _csr_matvec(rows, cols, indptr, indices, data, x, out):
+        out += sp.csr_matrix((data, indices, indptr), shape=(rows, cols)) @ x
 
 from cdpr_dynamics.models.base import CableAssembly
 from cdpr_dynamics.robot import Geometry, Robot, skew
@@ -105,17 +110,36 @@ class PlatformSystem:
         lam = (w^2 - i w dM)/(1 + i w dK); undamped, lam = w^2 is real and so is the arithmetic.
         """
         w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
+        z = self._stiffness_components(w, damping)                       # (ndof^2, nw)
+        nd = self.platform_dofs
+        return np.ascontiguousarray(z.T, dtype=complex).reshape(w.size, nd, nd)
+
+    def _stiffness_components(self, w: np.ndarray, damping: Damping) -> np.ndarray:
+        """:meth:`dynamic_stiffness` with the frequency axis last: (ndof^2, nw), row a ndof + b
+        the entry Z_ab, real undamped, complex damped (each entry's work contiguous)."""
         if damping.mass_factor == 0.0 and damping.stiffness_factor == 0.0:
             lam = w * w
-            own = self.platform_stiffness[None] - lam[:, None, None] * self.platform_mass[None]
-            return (own + self.cables_at(lam)).astype(complex)
-        scale = 1.0 + 1j * w * damping.stiffness_factor
-        lam = (w * w - 1j * w * damping.mass_factor) / scale
-        own = self.platform_stiffness[None] - lam[:, None, None] * self.platform_mass[None]
-        return scale[:, None, None] * (own + self.cables_at(lam))
+            own = self.platform_stiffness.reshape(-1, 1) - self.platform_mass.reshape(-1, 1) * lam
+            return own + self._cables_components(lam)    # complex where the model's S_c is
+        scale = np.empty(w.size, dtype=complex)     # 1 + i w dK, built from its parts
+        scale.real, scale.imag = 1.0, w * damping.stiffness_factor
+        lam = np.empty(w.size, dtype=complex)       # (w^2 - i w dM) / (1 + i w dK)
+        lam.real, lam.imag = w * w, w * -damping.mass_factor
+        lam /= scale
+        z = self.platform_stiffness.reshape(-1, 1) - self.platform_mass.reshape(-1, 1) * lam
+        z += self._cables_components(lam)
+        z *= scale
+        return z
 
     def cables_at(self, lam: np.ndarray) -> np.ndarray:
-        """sum_i G_i^T S_i(lam) G_i, (nl, ndof, ndof) or (ndof, ndof) where it is constant.
+        """sum_i G_i^T S_i(lam) G_i, (nl, ndof, ndof) or (ndof, ndof) where it is constant."""
+        if self.assembly.constant_stiffness is not None:
+            return self._constant_cables
+        return self._cables_components(lam).T.reshape(-1, self.platform_dofs, self.platform_dofs)
+
+    def _cables_components(self, lam: np.ndarray) -> np.ndarray:
+        """:meth:`cables_at` with the frequency axis last: (ndof^2, nl), or (ndof^2, 1) where
+        constant.
 
         Shortcuts of :meth:`cables_on_platform` (same numbers): a constant end stiffness
         (massless models) is condensed once; axial/transverse cables (``fem``, ``dsm``) map
@@ -123,18 +147,21 @@ class PlatformSystem:
         """
         assembly = self.assembly
         if assembly.constant_stiffness is not None:
-            return self._constant_cables
+            return self._constant_cables.reshape(-1, 1)
         if assembly.decoupled is None:
-            return self.cables_on_platform(assembly.end_stiffness(lam))
-        cables = assembly.decoupled
-        flat = cables.stiffness(lam).reshape(2 * cables.unit.shape[0], lam.size)   # (2n, nl)
-        if np.iscomplexobj(flat):        # two real GEMMs written into one complex result
-            out = np.empty((lam.size, self._decoupled_congruence.shape[1]), dtype=complex)
-            out.real = flat.real.T @ self._decoupled_congruence
-            out.imag = flat.imag.T @ self._decoupled_congruence
+            ends = assembly.end_stiffness(lam)
+            flat = ends.reshape(ends.shape[0], self._congruence.shape[0]).T   # (9n, nl)
+            congruence = self._congruence.T
         else:
-            out = flat.T @ self._decoupled_congruence
-        return out.reshape(-1, self.platform_dofs, self.platform_dofs)
+            cables = assembly.decoupled
+            flat = cables.stiffness(lam).reshape(2 * cables.unit.shape[0], lam.size)  # (2n, nl)
+            congruence = self._decoupled_congruence.T
+        if not np.iscomplexobj(flat):
+            return congruence @ flat
+        out = np.empty((congruence.shape[0], flat.shape[1]), dtype=complex)
+        out.real = congruence @ flat.real    # two real GEMMs: far faster than a complex one
+        out.imag = congruence @ flat.imag
+        return out
 
     def cables_on_platform(self, ends: np.ndarray) -> np.ndarray:
         """sum_i G_i^T S_i G_i: stacked cable end stiffnesses (nl, n, 3, 3) on the platform
@@ -291,19 +318,23 @@ def frequency_response(system: PlatformSystem, frequency_hz, force_n,
     """
     f = np.atleast_1d(np.asarray(frequency_hz, dtype=float))
     w = 2.0 * np.pi * f
-    z = system.dynamic_stiffness(w, damping)
+    z = system._stiffness_components(w, damping)            # (ndof^2, nf): Z_ab in row a ndof + b
     nd = system.platform_dofs
     load = np.concatenate([np.asarray(force_n, dtype=float),
                            np.asarray(moment_nm, dtype=float)])[:nd]
-    scale = np.maximum(_frobenius(z), np.abs(system._static_stiffness).max()
+    scale = np.maximum(_column_norms(z), np.abs(system._static_stiffness).max()
                        + w * w * np.abs(system.platform_mass).max())
     with np.errstate(all='ignore'):   # singular frequencies: replaced below
         if nd == 3:
-            cofactor = _cofactors3(z)
-            det = np.einsum('nj,nj->n', z[:, 0], cofactor[:, 0])
-            response = np.einsum('nji,j->ni', cofactor, load) / det[:, None]
-            sigma = np.abs(det) / _frobenius(cofactor)
+            cofactor = z[_COFACTOR[0]] * z[_COFACTOR[1]]                # C_ab, row 3 a + b
+            cofactor -= z[_COFACTOR[2]] * z[_COFACTOR[3]]
+            det = np.einsum('kn,kn->n', z[:3], cofactor[:3])
+            response = (load @ cofactor.reshape(3, -1)).reshape(3, -1)  # sum_a F_a C_ab
+            response /= det
+            response = np.ascontiguousarray(response.T, dtype=complex)
+            sigma = np.abs(det) / _column_norms(cofactor)
         else:
+            z = np.ascontiguousarray(z.T, dtype=complex).reshape(f.size, nd, nd)
             try:
                 inverse = np.linalg.inv(z)
             except np.linalg.LinAlgError:       # exactly singular somewhere: one at a time
@@ -321,16 +352,20 @@ def _frobenius(a: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum('ni,ni->n', flat, flat))
 
 
-_NEXT = np.array([1, 2, 0])
-_AFTER = np.array([2, 0, 1])
+def _column_norms(a: np.ndarray) -> np.ndarray:
+    """sqrt(sum_k |a_kn|^2) of (k, n) real or complex components (C-contiguous): the
+    Frobenius norms of matrices stored entry by entry along the first axis."""
+    if not np.iscomplexobj(a):
+        return np.sqrt(np.einsum('kn,kn->n', a, a))
+    parts = a.view(float)
+    squares = np.einsum('kn,kn->n', parts, parts)          # re^2 and im^2 side by side
+    return np.sqrt(squares[0::2] + squares[1::2])
 
 
-def _cofactors3(a: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) signed cofactors C_ij = a_(i+1)(j+1) a_(i+2)(j+2) - a_(i+1)(j+2) a_(i+2)(j+1)
-    (indices mod 3) of stacked 3x3 matrices: adj a = C^T, det a = sum_j a_0j C_0j."""
-    i1, j1 = _NEXT[:, None], _NEXT[None, :]
-    i2, j2 = _AFTER[:, None], _AFTER[None, :]
-    return a[:, i1, j1] * a[:, i2, j2] - a[:, i1, j2] * a[:, i2, j1]
+# the signed cofactors C_ij = a_(i+1)(j+1) a_(i+2)(j+2) - a_(i+1)(j+2) a_(i+2)(j+1) (indices
+# mod 3) of a 3x3 matrix stored entry by entry (row 3 i + j): adj a = C^T, det a = sum_j a_0j C_0j
+_COFACTOR = tuple(np.array([3 * ((i + di) % 3) + (j + dj) % 3 for i in range(3) for j in range(3)])
+                  for di, dj in ((1, 1), (2, 2), (1, 2), (2, 1)))
 
 
 def _inverse_or_nan(a: np.ndarray) -> np.ndarray:
@@ -353,6 +388,20 @@ def platform_frequencies(system: PlatformSystem) -> np.ndarray:
 
 # --------------------------------------------------------------------------- Newmark
 
+class _StateRow:
+    """Row ``row`` of an integrator's (3, n) state ``_state`` as an attribute: reading gives
+    the row itself (a view), assigning copies into it."""
+
+    def __init__(self, row: int, doc: str):
+        self.row, self.__doc__ = row, doc
+
+    def __get__(self, integrator, owner=None):
+        return self if integrator is None else integrator._state[self.row]
+
+    def __set__(self, integrator, value) -> None:
+        integrator._state[self.row] = value
+
+
 class Newmark:
     """Newmark's method (Eqs. 42-50) for M u'' + C u' + K u = F(t), factorised once.
 
@@ -363,6 +412,10 @@ class Newmark:
     Unconditionally stable for alpha >= 1/2 and beta >= alpha/2; otherwise stable only for
     w_max dt <= 1 / sqrt(alpha/2 - beta), which :meth:`__init__` checks (undamped bound) and
     refuses with :class:`DynamicsError` rather than integrate a diverging answer.
+
+    The state of motion is one (3, n) array, rows u (m, rad), v (m/s, rad/s) and a
+    (m/s^2, rad/s^2); :attr:`u`, :attr:`v` and :attr:`acc` are views of its rows (assigning
+    to them copies into it), so a step allocates nothing for the state.
     """
 
     def __init__(self, stiffness, mass, damping: Damping, dt_s: float, alpha: float = 0.5,
@@ -379,8 +432,7 @@ class Newmark:
             self._solve = lambda rhs: scipy.linalg.lu_solve(factor, rhs, check_finite=False)
         else:
             self._solve = spla.splu(sp.csc_matrix(effective), permc_spec='NATURAL').solve
-        n = self.k.shape[0]
-        self.u, self.v, self.acc = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._state = np.zeros((3, self.k.shape[0]))
 
     def _setup(self, dt_s: float, alpha: float, beta: float) -> None:
         """Check the parameters; the coefficients a0..a7 of Eqs. 46-50."""
@@ -403,21 +455,25 @@ class Newmark:
                     f'the highest mode ({w_max / 2 / math.pi:.4g} Hz) needs dt <= '
                     f'{limit / w_max:.3g} s')
 
+    u = _StateRow(0, 'Displacements (n,) m or rad: a view of the state (a step overwrites it).')
+    v = _StateRow(1, 'Velocities (n,): a view of the state.')
+    acc = _StateRow(2, 'Accelerations (n,): a view of the state.')
+
     def reset(self) -> None:
         """Back to rest (u = v = a = 0: Eq. 43 with no load at t = 0)."""
-        n = self.u.size
-        self.u, self.v, self.acc = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._state.fill(0.0)
 
     def step(self, force: np.ndarray) -> np.ndarray:
-        """Advance one step to the load ``force`` at t + dt (Eqs. 47-50); return u."""
+        """Advance one step to the load ``force`` at t + dt (Eqs. 47-50); return u (the state's
+        own row: copy it to keep it past the next step)."""
         a0, a1, a2, a3, a4, a5, a6, a7 = self.a
-        u, v, acc = self.u, self.v, self.acc
+        u, v, acc = self._state
         rhs = force + self.m @ (a0 * u + a2 * v + a3 * acc) + self.c @ (a1 * u + a4 * v + a5 * acc)
         u_new = self._solve(rhs)
         acc_new = a0 * (u_new - u) - a2 * v - a3 * acc
-        self.v = v + a6 * acc + a7 * acc_new
-        self.u, self.acc = u_new, acc_new
-        return u_new
+        v[:] = v + a6 * acc + a7 * acc_new
+        u[:], acc[:] = u_new, acc_new
+        return u
 
 
 class ChainNewmark(Newmark):
@@ -439,10 +495,18 @@ class ChainNewmark(Newmark):
 
         y = A_ii^-1 r_i,   u_p = S^-1 (r_p - A_ip^T y),   u_i = y - Z u_p,
 
-    while its right side (Eq. 47) takes M x + K y' from the same bands (BLAS dsbmv) and
-    couplings: O(n) per step, no sparse matrices. Massless models (``spring``, ``catenary``)
-    have no interior: u = S^-1 r with S = A_pp. ``k``, ``m`` and ``c`` (sparse, csc) are
-    assembled only when asked for (the state carried across a model change, tests).
+    while its right side (Eq. 47) is F + [M K] [x; y] of the same bands, couplings and
+    platform blocks: O(n) per step. Massless models (``spring``, ``catenary``) have no
+    interior: u = S^-1 r with S = A_pp. ``k``, ``m`` and ``c`` (sparse, csc) are assembled
+    only when asked for (the state carried across a model change, tests).
+
+    Few calls per step, into buffers made here, each operand in the layout its BLAS/LAPACK
+    call takes without a copy (the factor Fortran-ordered, vectors contiguous): one GEMM
+    (x, y, w_a, w_v) = E (u, v, a) of the state; the right side as one product with
+    [M K] (n, 2n) in CSR (:func:`_pair_rows`: the per-column loops of BLAS dsbmv cost 2-4x
+    more on bands this narrow), dpbtrs in place, the Schur part as one product
+    u_p = [S^-1, -S^-1 A_ip^T] [r_p; y] and u_i = y - Z u_p, and one GEMM for the new state,
+    (u', v', a') = L (u', w_a, w_v) with a' = a0 u' + w_a, v' = w_v + a7 a' (Eqs. 48-49).
 
     Raises :class:`DynamicsError` for invalid parameters (as :class:`Newmark`) and
     ``np.linalg.LinAlgError`` where the band is not positive definite (then use
@@ -457,7 +521,7 @@ class ChainNewmark(Newmark):
                                 'use fem or fem_sag for modes and time histories')
         self._system, self._damping = system, damping
         self._setup(dt_s, alpha, beta)
-        a0, a1, a2, a3, a4, a5, a6, _ = self.a
+        a0, a1, a2, a3, a4, a5, a6, a7 = self.a
         dm, dk = damping.mass_factor, damping.stiffness_factor
         # what a step needs of (u, v, a), one GEMM: the right side of Eq. 47,
         # M (a0 u + a2 v + a3 a) + C (a1 u + a4 v + a5 a) = M x + K y, and the parts of
@@ -475,10 +539,17 @@ class ChainNewmark(Newmark):
         self._p_pair = np.concatenate((m_pp, k_pp), axis=1)                # (nd, 2 nd)
         a_pp = scale_k * k_pp + scale_m * m_pp
         interior = blocks.nodes - 1
-        self._n = nd + 3 * interior * blocks.k_diag.shape[0]
+        n = self._n = nd + 3 * interior * blocks.k_diag.shape[0]
+        self._state = np.zeros((3, n))                                    # u, v, a
+        self._work = np.zeros((4, n))          # x, y, w_a, w_v; after the solve u' over y
+        self._xy = self._work[:2].reshape(-1)                             # [x; y] (2 n,)
+        self._u_new, self._solved = self._work[1], self._work[1:]
+        self._rhs = np.zeros(n)
+        self._update = np.array([[1.0, 0.0, 0.0], [a7 * a0, a7, 1.0], [a0, 1.0, 0.0]])
         if interior == 0:
             self._s_inv = _inverse(a_pp)
             self._b_pair = None
+            self._pair_matrix = self._p_pair                              # [M K]: (nd, 2 nd)
         else:
             self._k_band = _chain_band(blocks.k_diag, blocks.k_off)
             self._m_band = _chain_band(blocks.m_diag, blocks.m_off)
@@ -490,12 +561,16 @@ class ChainNewmark(Newmark):
             end_m, end_k = _end_coupling(blocks.m_off, g), _end_coupling(blocks.k_off, g)
             self._b_pair = _chain_coupling(np.concatenate((end_m, end_k), axis=2),
                                            interior)                       # (ni, 2 nd): M | K
-            self._b_stack = np.concatenate((self._b_pair[:, :nd], self._b_pair[:, nd:]))
             coupling = _chain_coupling(scale_k * end_k + scale_m * end_m, interior)   # A_ip
             z, info = _pbtrs(factor, coupling, lower=1)
             self._coupling, self._z = coupling, z
             self._s_inv = _inverse(a_pp - coupling.T @ z)
-        self.u, self.v, self.acc = np.zeros(self._n), np.zeros(self._n), np.zeros(self._n)
+            self._pair_matrix = _pair_rows((m_pp, end_m, self._m_band),
+                                           (k_pp, end_k, self._k_band))   # [M K]: CSR
+            self._schur = np.concatenate((self._s_inv, -self._s_inv @ coupling.T), axis=1)
+            self._r_i = self._rhs[nd:]
+            self._u_p, self._u_i = self._u_new[:nd], self._u_new[nd:]
+            self._zu = np.zeros(n - nd)
         self._check_stability(alpha, beta)
 
     @functools.cached_property
@@ -517,34 +592,32 @@ class ChainNewmark(Newmark):
         """Rayleigh damping dM M + dK K (csc), assembled on first use."""
         return self._damping.mass_factor * self.m + self._damping.stiffness_factor * self.k
 
-    def _solve(self, rhs: np.ndarray) -> np.ndarray:
-        """A^-1 rhs through the band and the Schur complement (class docstring)."""
-        nd = self._nd
+    def _solve(self) -> None:
+        """u' = A^-1 r of the right side r in ``_rhs`` (overwritten) into the state's work row
+        (class docstring): y = A_ii^-1 r_i (dpbtrs in place), u_p = [S^-1, -S^-1 A_ip^T] [r_p; y],
+        u_i = y - Z u_p."""
         if self._b_pair is None:
-            return self._s_inv @ rhs
-        y = _pbtrs(self._factor, rhs[nd:], lower=1)[0]
-        up = self._s_inv @ (rhs[:nd] - y @ self._coupling)
-        return np.concatenate([up, y - self._z @ up])
+            np.matmul(self._s_inv, self._rhs, out=self._u_new)
+            return
+        _pbtrs(self._factor, self._r_i, lower=1, overwrite_b=1)
+        np.matmul(self._schur, self._rhs, out=self._u_p)
+        np.matmul(self._z, self._u_p, out=self._zu)
+        np.subtract(self._r_i, self._zu, out=self._u_i)
 
     def step(self, force: np.ndarray) -> np.ndarray:
-        """Advance one step to the load ``force`` at t + dt (Eqs. 47-50); return u."""
-        x, y, w_a, w_v = self._state_map @ np.vstack((self.u, self.v, self.acc))
-        nd = self._nd
-        rhs = np.array(force, dtype=float)                  # force + M x + K y
+        """Advance one step to the load ``force`` (n,) at t + dt (Eqs. 47-50); return u (the
+        state's own row: copy it to keep it past the next step)."""
+        np.matmul(self._state_map, self._state, out=self._work)           # x, y, w_a, w_v
+        rhs = self._rhs                                                   # F + M x + K y
         if self._b_pair is None:
-            rhs += self._p_pair @ np.concatenate((x, y))
+            np.matmul(self._pair_matrix, self._xy, out=rhs)
+            np.add(rhs, force, out=rhs)
         else:
-            pair = np.concatenate((x[:nd], y[:nd]))
-            rhs[:nd] += self._p_pair @ pair + np.concatenate((x[nd:], y[nd:])) @ self._b_stack
-            inner = _sbmv(5, 1.0, self._k_band, y[nd:], lower=1)
-            inner = _sbmv(5, 1.0, self._m_band, x[nd:], beta=1.0, y=inner, lower=1,
-                          overwrite_y=1)
-            rhs[nd:] += inner + self._b_pair @ pair
-        u_new = self._solve(rhs)
-        acc_new = self.a[0] * u_new + w_a
-        self.v = w_v + self.a[7] * acc_new
-        self.u, self.acc = u_new, acc_new
-        return u_new
+            np.copyto(rhs, force)
+            _add_product(self._pair_matrix, self._xy, rhs)
+        self._solve()
+        np.matmul(self._update, self._solved, out=self._state)            # u', v', a'
+        return self._state[0]
 
 
 def _chain_band(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
@@ -565,6 +638,70 @@ def _chain_band(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
     skew = np.ndarray((cables * interior, 3, 6), slab.dtype, slab, 0,
                       (24 * item, 4 * item, 3 * item))     # [(c, j), b, k] = P_j[b + k, b]
     return skew.reshape(-1, 6).T
+
+
+def _add_product(matrix: sp.csr_matrix, x: np.ndarray, out: np.ndarray) -> None:
+    """out += matrix @ x in place (CSR of float64, int32 indices; x, out contiguous float64):
+    scipy's own kernel without the operator's checks, dispatch and result array, which cost
+    2-3x the product on the live path (and more with cold caches, a wrench every 5 ms)."""
+    _csr_matvec(matrix.shape[0], matrix.shape[1], matrix.indptr, matrix.indices, matrix.data,
+                x, out)
+
+
+def _pair_rows(m_parts, k_parts) -> sp.csr_matrix:
+    """[M K] (n, 2n) in CSR, n = nd + ni, from each matrix's (platform block (nd, nd), end
+    coupling (ncab, 3, nd) = O_c,last G_c, lower band (6, ni) of :func:`_chain_band`): the
+    platform block, the couplings of each cable's last interior node to the platform (both
+    triangles) and the band entries (both triangles, the zeros between chains included), laid
+    out by the cached pattern of :func:`_pair_pattern`: one gather per model, no sorting."""
+    platform, end, band = m_parts
+    pattern = _pair_pattern(platform.shape[0], end.shape[0], band.shape[1] // (3 * end.shape[0]))
+    source = np.concatenate([np.concatenate((p.ravel(), e.ravel(), b.ravel()))
+                             for p, e, b in (m_parts, k_parts)])
+    return sp.csr_matrix((source.take(pattern.take), pattern.indices, pattern.indptr),
+                         shape=pattern.shape)
+
+
+@dataclass(frozen=True, eq=False)
+class _PairPattern:
+    """CSR structure of [M K] (:func:`_pair_rows`) and, per stored entry, its index in the
+    concatenated (platform, coupling, band) values of M then K."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    take: np.ndarray
+    shape: tuple
+
+
+@functools.lru_cache(maxsize=16)
+def _pair_pattern(nd: int, cables: int, interior: int) -> _PairPattern:
+    """The structure of :func:`_pair_rows` for ``cables`` chains of ``interior`` nodes."""
+    ni = 3 * interior * cables
+    n = nd + ni
+    # platform block: (i, j) = platform[i, j]
+    i, j = np.divmod(np.arange(nd * nd), nd)
+    parts = [(i, j, np.arange(nd * nd))]
+    # coupling: cable c's last interior node, component b, to platform DOF j; and its mirror
+    c, b, j = np.unravel_index(np.arange(cables * 3 * nd), (cables, 3, nd))
+    node = nd + 3 * interior * c + 3 * (interior - 1) + b
+    at = nd * nd + np.arange(cables * 3 * nd)
+    parts += [(node, j, at), (j, node, at)]
+    # band: (c + k, c) = band[k, c] in interior indices; and the mirror of k > 0
+    k, col = np.divmod(np.arange(6 * ni), ni)
+    keep = col + k < ni
+    k, col = k[keep], col[keep]
+    at = nd * nd + cables * 3 * nd + k * ni + col
+    mirror = k > 0
+    parts += [(nd + col + k, nd + col, at),
+              (nd + col[mirror], nd + col[mirror] + k[mirror], at[mirror])]
+    rows, cols, src = (np.concatenate(v) for v in zip(*parts))
+    size = nd * nd + cables * 3 * nd + 6 * ni           # values of one matrix
+    rows, cols, src = (np.concatenate((rows, rows)), np.concatenate((cols, cols + n)),
+                       np.concatenate((src, src + size)))              # M, then K
+    order = np.lexsort((cols, rows))
+    indptr = np.concatenate(([0], np.cumsum(np.bincount(rows, minlength=n))))
+    return _PairPattern(indptr.astype(np.int32), cols[order].astype(np.int32), src[order],
+                        (n, 2 * n))
 
 
 def _chain_coupling(end: np.ndarray, interior: int) -> np.ndarray:

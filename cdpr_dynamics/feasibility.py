@@ -27,7 +27,7 @@ W^T T = w; a few ms for 1000 cables, against 100-130 ms for the tension QP it re
 """
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from itertools import combinations
 from math import comb
 
@@ -196,7 +196,17 @@ class WrenchSet:
         return 0.0 if self._inside(w) else -np.inf
 
     def reason(self, force_n, moment_nm=(0.0, 0.0, 0.0)) -> str:
-        """Why the external wrench cannot be held by the cables within the box, or ``''``."""
+        """Why the external wrench cannot be held by the cables within the box, or ``''``.
+
+        A wrench well inside (every facet's slack >= 0, not only >= -tolerance) is accepted
+        by :attr:`_inside_test` alone, one product; any other goes through the full test."""
+        if self.exact:
+            test, external = self._inside_test
+            external[:3] = force_n
+            if external.size == 7:
+                external[3:6] = moment_nm
+            if test.dot(external).max() <= 0.0:         # NaN: not <= 0, the full test says
+                return ''
         w = self._needed(force_n, moment_nm)
         slack = self.reach - np.abs(self.normals.dot(w) - self.offset)
         k = int(slack.argmin())
@@ -211,6 +221,20 @@ class WrenchSet:
             return ''
         return (f'wrench outside the feasible set: the cables would need {_fmt(w)} with '
                 f'tensions in [{self.t_min_n:g}, {self.t_max_n:g}] N (linear program)')
+
+    @cached_property
+    def _inside_test(self) -> tuple[np.ndarray, np.ndarray]:
+        """(T (2k, d+1), buffer (d+1,) ending in 1) with T [f; 1] <= 0 iff every facet's
+        slack is >= 0 for the external wrench f: with c = n . required - offset per normal n,
+        the slack reach - |c - n . f| >= 0 reads n . f - (c + reach) <= 0 and
+        -n . f + (c - reach) <= 0. Its rounding (~1e-16 of the wrench scale) is far inside
+        the tolerance the full test allows, so the answers are the full test's."""
+        c = self.normals @ self.required - self.offset
+        test = np.block([[self.normals, -(c + self.reach)[:, None]],
+                         [-self.normals, (c - self.reach)[:, None]]])
+        external = np.zeros(self.normals.shape[1] + 1)
+        external[-1] = 1.0
+        return test, external
 
     def _needed(self, force_n, moment_nm) -> np.ndarray:
         """w = the required wrench minus the external one (3 or 6,)."""

@@ -98,7 +98,7 @@ def rotated_quaternion(rotation: np.ndarray, theta_rad, base=None) -> np.ndarray
     (world frame, rad) applied after ``rotation``; exactly R's quaternion for theta = 0.
     ``base``: R's quaternion where the caller has it already."""
     base = matrix_to_quaternion(rotation) if base is None else base
-    if not np.any(theta_rad):
+    if not np.asarray(theta_rad).any():          # the method: no np.any dispatch per wrench
         return base
     return quaternion_product(rotation_vector_quaternion(theta_rad), base)
 
@@ -124,9 +124,11 @@ class LivePredictor:
         self._t_ns: int | None = None    # stamp of the held wrench
         self._remainder_ns = 0
         self._load = None
+        self._load_dofs = 0              # the platform DOFs _load was written for
+        self._spare_load, self._spare_dofs = None, 0     # the other load vector (advance)
         self.max_steps_per_wrench = MAX_STEPS_PER_WRENCH
         self.notice = ''                 # what the last advance() left out, or ''
-        self._quaternion_of = None       # (rotation, its quaternion) of the last prediction
+        self._pose_of = None             # the pose's part of a prediction (_pose_parts)
         self.update_pose(settings.initial_position_m, rotation=settings.initial_rotation,
                          force=True)
 
@@ -308,17 +310,19 @@ class LivePredictor:
         self.notice = ''
         n = self.integrator.u.shape[0]
         nd = self.system.platform_dofs
-        load = np.zeros(n)
+        load = self._spare_load
+        if load is None or load.shape[0] != n or self._spare_dofs != nd:
+            load = np.zeros(n)
         load[:3] = force_n
         if nd == 6:
             load[3:6] = moment_nm
         if self._t_ns is not None and stamp_ns < self._t_ns:
             raise ValueError(f'stamp {stamp_ns * 1e-9:.9f} s is older than the last wrench '
                              f'({self._t_ns * 1e-9:.9f} s)')
-        if self._t_ns is None or self._load is None:
+        held = self._load
+        if self._t_ns is None or held is None:
             self._remainder_ns = 0
         else:
-            held = self._load
             if held.shape != load.shape:          # the model changed: platform DOFs carry on
                 held = np.zeros(n)
                 held[:nd] = self._load[:nd]
@@ -336,7 +340,11 @@ class LivePredictor:
             for _ in range(steps):
                 step(held)
         self._t_ns = stamp_ns
-        self._load = load
+        # two load vectors swap roles (no allocation per wrench): the one just integrated takes
+        # the next wrench (only its entries of the platform DOFs are ever written)
+        self._spare_load, self._spare_dofs = ((held, self._load_dofs) if held is self._load
+                                              else (None, 0))
+        self._load, self._load_dofs = load, nd
         return self.integrator.u[:3].copy()
 
     def prediction(self, point_m=(0.0, 0.0, 0.0)) -> Prediction:
@@ -344,13 +352,24 @@ class LivePredictor:
         :class:`Prediction`; the default (the centroid) gives :meth:`advance`'s displacement."""
         nd = self.system.platform_dofs
         q = self.integrator.u[:nd]
+        point = point_m if type(point_m) is tuple else tuple(map(float, point_m))
+        pose = self._pose_of
+        if (pose is None or pose[0] is not self.rotation or pose[1] is not self.position_m
+                or pose[2] != point):
+            pose = self._pose_of = self._pose_parts(point)
+        if nd == 3:        # a point mass: u itself, the equilibrium orientation
+            displacement = q[:3].copy()
+            return Prediction(displacement, pose[3] + displacement, pose[4])
         displacement = point_displacement(q, self.rotation, point_m)
+        return Prediction(displacement, pose[3] + displacement,
+                          rotated_quaternion(self.rotation, q[3:6], pose[4]))
+
+    def _pose_parts(self, point_m) -> tuple:
+        """What :meth:`prediction` takes from the pose, kept until the pose or the point
+        changes: (rotation, position, point, p + R b (3,) m, R's quaternion (4,))."""
         arm = self.rotation @ np.asarray(point_m, dtype=float)
-        theta = q[3:6] if nd == 6 else np.zeros(3)
-        if self._quaternion_of is None or self._quaternion_of[0] is not self.rotation:
-            self._quaternion_of = (self.rotation, matrix_to_quaternion(self.rotation))
-        return Prediction(displacement, self.position_m + arm + displacement,
-                          rotated_quaternion(self.rotation, theta, self._quaternion_of[1]))
+        return (self.rotation, self.position_m, point_m, self.position_m + arm,
+                matrix_to_quaternion(self.rotation))
 
     def rebase_time(self) -> None:
         """Take the next wrench's stamp as the new time origin, keeping the state of motion

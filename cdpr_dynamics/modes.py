@@ -101,7 +101,7 @@ class Modes:
 def classify(fraction) -> tuple[str, ...]:
     """Kinds of modes with platform energy fractions ``fraction`` (module doc)."""
     return tuple('platform' if e >= PLATFORM_SHARE else 'cable' if e <= CABLE_SHARE
-                 else 'mixed' for e in np.asarray(fraction, dtype=float))
+                 else 'mixed' for e in np.asarray(fraction, dtype=float).tolist())
 
 
 def modes(system: PlatformSystem, f_max_hz: float | None = None, count: int = MIN_MODES,
@@ -144,7 +144,7 @@ def natural_frequencies(system: PlatformSystem, count: int = MIN_MODES,
     """
     counter = _counter(system)
     if counter is not None:
-        omega, multiplicity, _, _, take = counter.frequencies(f_max_hz, count, tol_hz)
+        omega, multiplicity, _, _, take, _ = counter.frequencies(f_max_hz, count, tol_hz)
         return np.repeat(omega, multiplicity)[:take] / (2.0 * math.pi)
     k, m = system.matrices()
     values, _ = _eigen(k, m, f_max_hz, count, vectors=False)
@@ -178,21 +178,21 @@ class _Classifier:
 
     def modes(self, f_max_hz, count, tol_hz) -> Modes | None:
         """Classified modes by counting (module doc); None where the bookkeeping fails."""
-        omega, mult, lo, hi, take = self.counter.frequencies(f_max_hz, count, tol_hz)
+        omega, mult, lo, hi, take, jumps = self.counter.frequencies(f_max_hz, count, tol_hz)
         if omega.size and omega[0] == 0.0 and lo[0] == hi[0]:
             return None                                 # negative stiffness: dense
         lam = omega * omega
-        jumps = self.interior.counts(hi * hi) - self.interior.counts(lo * lo)
         nd = self.nd
         parts = []
         regular = ~np.any(jumps > 0, axis=1)
         if np.any(regular):
             parts.append(self._coupled(lam[regular], mult[regular], np.flatnonzero(regular)))
-        for g in np.flatnonzero(~regular):
-            part = self._at_pole(lam[g], mult[g], jumps[g], g)
-            if part is None:
+        if not np.all(regular):
+            poles = np.flatnonzero(~regular)
+            found = self._at_poles(lam[poles], mult[poles], jumps[poles], poles)
+            if found is None:
                 return None
-            parts.append(part)
+            parts += found
         if not parts:
             empty = np.zeros(0)
             return Modes(empty, empty, (), np.zeros(0, int), np.zeros((0, nd)))
@@ -257,28 +257,42 @@ class _Classifier:
         x = np.linalg.solve(np.swapaxes(off, -1, -2), ends - own)
         return np.swapaxes(mo[None, :, -1], -1, -2) @ x
 
-    def _at_pole(self, lam, mult, jumps, group):
-        """Modes with the platform at rest at a clamped-chain eigenvalue ``lam``: the
-        combinations of the chains' clamped modes whose end forces cancel on the platform.
-        None where they are not all ``mult`` modes of this frequency (dense fallback)."""
-        s = self.system
-        g_map = self.g_map
-        force, mass, owner, scale = self.interior.clamped_ends(lam, jumps)
-        forces = np.einsum('rin,ri->nr', g_map[owner], force)              # (nd, r)
-        masses = np.einsum('rin,ri->nr', g_map[owner], mass)
-        # the count says how many combinations leave the platform at rest (mult); the end
-        # forces (accurate to ~eps (EA/T)^2 of their size) must agree: a clear gap
-        _, sing, vt = np.linalg.svd(forces)
-        rank = forces.shape[1] - mult
-        sing = np.concatenate([sing, np.zeros(max(forces.shape[1] - sing.size, 0))])
-        if rank < 0 or (rank > 0 and sing[rank - 1] < 1e-3 * sing[0]) \
-                or (rank < sing.size and sing[rank] > 1e-6 * scale):
-            return None
-        null = vt[rank:].T                                               # (r, mult)
-        energy = np.zeros((mult, s.geometry.n_cables))
-        np.add.at(energy.T, owner, null ** 2)
-        effective = (masses @ null).T ** 2
-        return np.full(mult, group), np.zeros(mult), effective, energy
+    def _at_poles(self, lam, mult, jumps, groups):
+        """Modes with the platform at rest at clamped-chain eigenvalues ``lam`` (g,): at each,
+        the combinations of the chains' clamped modes whose end forces cancel on the
+        platform. None where they are not all ``mult`` modes of a frequency (dense fallback)."""
+        force, mass, owner, at, scale = self.interior.clamped_ends(lam, jumps)
+        g_map = self.g_map[owner]                                          # (r, 3, nd)
+        forces = np.einsum('rin,ri->rn', g_map, force)                     # (r, nd)
+        masses = np.einsum('rin,ri->rn', g_map, mass)
+        n_cables = self.system.geometry.n_cables
+        size = np.bincount(at, minlength=len(groups))          # clamped modes per eigenvalue
+        start = np.cumsum(size) - size                         # (``at`` ascends)
+        if np.any(size < mult):
+            return None                    # fewer clamped modes than the count says
+        found = {}
+        for r in np.unique(size):          # one batched SVD per number of clamped modes
+            ks = np.flatnonzero(size == r)
+            take = (start[ks, None] + np.arange(r)).ravel()
+            stacked = np.swapaxes(forces[take].reshape(ks.size, r, -1), 1, 2)  # (k, nd, r)
+            _, sing, vt = np.linalg.svd(stacked)
+            found.update((k, (sing[i].tolist(), vt[i])) for i, k in enumerate(ks.tolist()))
+        parts = []
+        for k, group in enumerate(groups):
+            rows = slice(start[k], start[k] + size[k])
+            sing, vt = found[k]
+            # the count says how many combinations leave the platform at rest (mult); the
+            # end forces (accurate to ~eps (EA/T)^2 of their size) must agree: a clear gap
+            rank = int(size[k] - mult[k])
+            sing = sing + [0.0] * max(int(size[k]) - len(sing), 0)
+            if (rank > 0 and sing[rank - 1] < 1e-3 * sing[0]) \
+                    or (rank < len(sing) and sing[rank] > 1e-6 * scale[k]):
+                return None
+            null = vt[rank:].T                                             # (r_k, mult)
+            energy = (null ** 2).T @ (owner[rows][:, None] == np.arange(n_cables))  # per cable
+            effective = (masses[rows].T @ null).T ** 2
+            parts.append((np.full(mult[k], group), np.zeros(mult[k]), effective, energy))
+        return parts
 
 
 def _generalized_eigh(a: np.ndarray, b: np.ndarray):

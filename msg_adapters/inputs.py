@@ -107,5 +107,6 @@ class InputHandler:
         except Exception as exc:  # noqa: BLE001
             raise InvalidMessage(f'{type(exc).__name__}: {clip(exc)}', 'internal') from None
         self.wrench_clock.accept(stamp)
-        self.notice = '; '.join(n for n in (stamp.note, self.predictor.notice) if n)
+        note, skipped = stamp.note, self.predictor.notice
+        self.notice = f'{note}; {skipped}' if note and skipped else note or skipped
         return u

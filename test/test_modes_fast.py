@@ -88,10 +88,18 @@ def test_closed_form_clamped_ends_equal_inverse_iteration():
     general = counting._ChainInterior(system.assembly.blocks)
     poles = uniform.poles((2 * np.pi * 60.0) ** 2)
     assert poles.size > 4
-    for lam in poles:
-        jumps = uniform.counts([lam * (1 + 1e-9)])[0] - uniform.counts([lam * (1 - 1e-9)])[0]
-        force, mass, owner, scale = uniform.clamped_ends(lam, jumps)
-        force_ref, mass_ref, owner_ref, scale_ref = counting._stacked_ends(general, lam, jumps)
+    jumps_all = uniform.counts(poles * (1 + 1e-9)) - uniform.counts(poles * (1 - 1e-9))
+    batched = uniform.clamped_ends(poles, jumps_all)           # every eigenvalue at once
+    for k, lam in enumerate(poles):
+        jumps = jumps_all[k:k + 1]
+        force, mass, owner, group, scale = uniform.clamped_ends([lam], jumps)
+        in_batch = batched[3] == k
+        for one, many in zip((force, mass, owner), batched[:3]):
+            np.testing.assert_array_equal(one, many[in_batch])
+        assert np.all(group == 0) and scale[0] == batched[4][k]
+        force_ref, mass_ref, owner_ref, _, scale_ref = counting._stacked_ends(
+            general, [lam], jumps)
+        scale, scale_ref = scale[0], scale_ref[0]
         np.testing.assert_array_equal(owner, owner_ref)
         for c in np.unique(owner):          # basis-free within a cable's repeated modes
             mine, theirs = owner == c, owner_ref == c
@@ -102,6 +110,30 @@ def test_closed_form_clamped_ends_equal_inverse_iteration():
                                            ref_a[theirs].T @ ref_b[theirs],
                                            rtol=1e-7, atol=1e-9 * scale ** 2)
         assert scale == pytest.approx(scale_ref, rel=1e-7)
+
+
+@pytest.mark.parametrize('position', [None, OFF_CENTRE], ids=['centre', 'unequal'])
+def test_dsm_clamped_ends_are_the_residues_of_the_end_stiffness(position):
+    # near a clamped eigenvalue lam_j, S_c(lam) ~ -sum f f^T / (lam_j - lam) over the clamped
+    # modes there (f their end reactions): the residue checks the closed form independently
+    # (the mean of (lam - lam_j) S_c at lam_j (1 -+ 1e-6) cancels the regular part's term)
+    system = _system(PAPER, position, 'dsm', 1)
+    interior = counting.counter(system).interior
+    poles = interior.poles((2 * np.pi * 60.0) ** 2)
+    jumps = interior.counts(poles * (1 + 1e-9)) - interior.counts(poles * (1 - 1e-9))
+    force, mass, owner, group, scale = interior.clamped_ends(poles, jumps)
+    assert np.all(mass == 0.0) and force.shape[0] == jumps.sum() > 8
+    members = system.assembly.end_stiffness
+    for k, lam in enumerate(poles):
+        near = lam * (1 + np.array([-1e-6, 1e-6]))
+        ends = members(near).real                                          # (2, ncab, 3, 3)
+        for c in np.flatnonzero(jumps[k]):
+            rows = (group == k) & (owner == c)
+            assert rows.sum() == jumps[k, c]
+            residue = np.einsum('k,kij->ij', near - lam, ends[:, c]) / 2
+            np.testing.assert_allclose(residue, force[rows].T @ force[rows],
+                                       rtol=0, atol=1e-8 * np.abs(residue).max())
+        assert scale[k] == np.abs(force[group == k]).max()
 
 
 def test_z_cot_z_agrees_with_extended_precision():

@@ -113,13 +113,14 @@ def chain_end_stiffness_last(k_element: np.ndarray, m_element: np.ndarray, n: in
                 v *= 0.5
                 u += v                    # U_m = r U_m-1 + V_m / 2
                 v = step
-        bad = ~(np.isfinite(u) & np.isfinite(v)) | (u == 0)
-        v /= u
-        v *= d12
-        v *= -0.5                         # S_n = -d12 V_n / (2 U_n-1)
-        if bad.any():
-            v[bad] = _chain_special(d11[bad], d12[bad], r[bad], q[bad], u[bad])
-    return v
+        out = v / u
+        out *= d12
+        out *= -0.5                       # S_n = -d12 V_n / (2 U_n-1)
+        # where the powering cannot give it: u or v not finite (u = inf alone gives out = 0)
+        if not np.isfinite(out).all() or np.isinf(u).any():
+            bad = ~(np.isfinite(u) & np.isfinite(v)) | (u == 0)
+            out[bad] = _chain_special(d11[bad], d12[bad], r[bad], q[bad], u[bad])
+    return out
 
 
 def _chain_special(d11, d12, r, q, u):
