@@ -22,6 +22,8 @@ def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
     assert row['naive_max_relative_difference'] < 1e-9
     assert np.isfinite(row['naive_over_condensed'])
     assert rows[('fem', 64)]['dofs'] == 1515
+    sizes = result['frf_sizes']        # quick mode: n = 16 and 64, interleaved
+    assert set(sizes['p50_s']) == {'16', '64'} and sizes['largest_over_smallest'] > 0
     assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'catenary_exact',
                                                'fem_sag_n16', 'fem_sag_n16_chord_statics'}
     assert result['node_compute_per_wrench']['p99_ms'] > 0

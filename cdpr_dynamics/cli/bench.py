@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 import time
@@ -183,6 +184,31 @@ def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
     return rows
 
 
+def bench_frf_sizes(settings: Settings, repeat: int, sizes=(16, 64, 256)) -> dict:
+    """The 391-point fem FRF at each of ``sizes`` elements per cable, calls interleaved (one
+    of each size per round): the cost against n. Each model row's own p50 moves 0.6-2x with
+    the allocator's state left by the rows before it (measured here: the n = 256 / n = 16
+    ratio of those rows from 0.6 to 2.1 in four runs), interleaving shares that state."""
+    settle_heap()
+    eq = equilibrium(settings)
+    freqs = settings.frequencies_hz
+    calls = {}
+    for n in sizes:
+        system = build_system(settings, eq, 'fem', n)
+        damping = damping_for(settings, system)
+        calls[n] = functools.partial(frequency_response, system, freqs, settings.frf_force_n,
+                                     damping=damping)
+        calls[n]()
+    samples = {n: [] for n in sizes}
+    for _ in range(max(3, 3 * repeat)):
+        for n, call in calls.items():
+            start = time.perf_counter()
+            call()
+            samples[n].append(time.perf_counter() - start)
+    p50 = {n: float(np.median(values)) for n, values in samples.items()}
+    return {'p50_s': p50, 'largest_over_smallest': p50[sizes[-1]] / p50[sizes[0]]}
+
+
 def bench_modes(settings: Settings, repeat: int, quick: bool) -> list[dict]:
     """Every mode below ``frf.f_max_hz`` (at least 12), classified: by Wittrick-Williams
     counting (:func:`cdpr_dynamics.modes.modes`, the default) against the dense / Lanczos
@@ -239,6 +265,8 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
     repeat = 3 if quick else 30
     result = {'quick': quick, 'qp': bench_qp(settings, repeat),
               'models': bench_models(settings, repeat, quick),
+              'frf_sizes': bench_frf_sizes(settings, repeat, (16, 64) if quick else
+                                           (16, 64, 256)),
               'modes': bench_modes(settings, repeat, quick),
               'node_compute_per_wrench': bench_node.compute_per_wrench(
                   settings, 2000 if quick else 20000),
@@ -285,6 +313,10 @@ def summary(result: dict) -> str:
             text += (f", naive dense x{row['naive_over_condensed']:.0f})"
                      if 'naive_over_condensed' in row else ')')
         lines.append(text)
+    sizes = result['frf_sizes']
+    lines.append('fem FRF391 interleaved n=' + '/'.join(str(n) for n in sizes['p50_s'])
+                 + ' p50 ' + ' / '.join(f'{v * ms:.3f}' for v in sizes['p50_s'].values())
+                 + f" ms (largest / smallest n x{sizes['largest_over_smallest']:.2f})")
     for row in result['modes']:
         text = (f"modes below f_max {row['method']:>8} n={row['elements_per_cable']:<3} "
                 f"{row['modes']} ({row['platform_modes']} platform): counted "

@@ -415,7 +415,8 @@ def controller(config, wrench_hz: float, pose_hz: float, duration_s: float,
     """A controller's traffic: WrenchStamped at ``wrench_hz`` and PoseStamped at ``pose_hz``
     moving along a 5 cm circle (each pose a rebuild), both best effort, stamps 1/rate apart
     from ``start_s``, for ``duration_s``; starts once both topics have ``subscribers``
-    subscriptions (the node and a recorder). Returns the counts sent."""
+    subscriptions (the node and a recorder) and ``predicted_displacement`` the others (the
+    recorder). Returns the counts sent."""
     import rclpy
     from geometry_msgs.msg import PoseStamped, WrenchStamped
     from rclpy.node import Node
@@ -434,12 +435,19 @@ def controller(config, wrench_hz: float, pose_hz: float, duration_s: float,
     wrench_pub = node.create_publisher(WrenchStamped, 'wrench', qos_profile_sensor_data)
     pose_pub = node.create_publisher(PoseStamped, 'pose', qos_profile_sensor_data)
     deadline = time.monotonic() + 30.0
-    while (min(wrench_pub.get_subscription_count(), pose_pub.get_subscription_count())
-           < subscribers and time.monotonic() < deadline):
+
+    def ready() -> bool:
+        """The node and the recorder on both inputs, and the recorder on the node's answers
+        (a recorder that subscribes to them late misses the first predictions)."""
+        inputs = min(wrench_pub.get_subscription_count(), pose_pub.get_subscription_count())
+        answers = node.count_subscribers('predicted_displacement')
+        return inputs >= subscribers and answers >= subscribers - 1
+
+    while not ready() and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
-    if min(wrench_pub.get_subscription_count(), pose_pub.get_subscription_count()) < subscribers:
+    if not ready():
         raise SystemExit(f'controller: fewer than {subscribers} subscribers on wrench and pose '
-                         'after 30 s')
+                         f'(or {subscribers - 1} on predicted_displacement) after 30 s')
     msg = wrench_message([0.0, 0.0, 0.0], frame_id=frame)
     total = int(round(wrench_hz * duration_s))
     per_pose = max(1, int(round(wrench_hz / pose_hz)))
