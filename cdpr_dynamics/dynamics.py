@@ -533,13 +533,12 @@ class ChainNewmark(Newmark):
         scale_k, scale_m = 1.0 + a1 * dk, a0 + a1 * dm                   # A = sK K + sM M
         g = system.geometry.attachment_map()
         nd = system.platform_dofs
-        self._nd = nd
         k_pp = _platform_block(system.platform_stiffness, blocks.k_diag, g)
         m_pp = _platform_block(system.platform_mass, blocks.m_diag, g)
         self._p_pair = np.concatenate((m_pp, k_pp), axis=1)                # (nd, 2 nd)
         a_pp = scale_k * k_pp + scale_m * m_pp
         interior = blocks.nodes - 1
-        n = self._n = nd + 3 * interior * blocks.k_diag.shape[0]
+        n = nd + 3 * interior * blocks.k_diag.shape[0]
         self._state = np.zeros((3, n))                                    # u, v, a
         self._work = np.zeros((4, n))          # x, y, w_a, w_v; after the solve u' over y
         self._xy = self._work[:2].reshape(-1)                             # [x; y] (2 n,)
@@ -548,7 +547,7 @@ class ChainNewmark(Newmark):
         self._update = np.array([[1.0, 0.0, 0.0], [a7 * a0, a7, 1.0], [a0, 1.0, 0.0]])
         if interior == 0:
             self._s_inv = _inverse(a_pp)
-            self._b_pair = None
+            self._factor = None                                           # no interior
             self._pair_matrix = self._p_pair                              # [M K]: (nd, 2 nd)
         else:
             self._k_band = _chain_band(blocks.k_diag, blocks.k_off)
@@ -559,11 +558,9 @@ class ChainNewmark(Newmark):
                                             f'{info})')
             self._factor = factor
             end_m, end_k = _end_coupling(blocks.m_off, g), _end_coupling(blocks.k_off, g)
-            self._b_pair = _chain_coupling(np.concatenate((end_m, end_k), axis=2),
-                                           interior)                       # (ni, 2 nd): M | K
             coupling = _chain_coupling(scale_k * end_k + scale_m * end_m, interior)   # A_ip
             z, info = _pbtrs(factor, coupling, lower=1)
-            self._coupling, self._z = coupling, z
+            self._z = z
             self._s_inv = _inverse(a_pp - coupling.T @ z)
             self._pair_matrix = _pair_rows((m_pp, end_m, self._m_band),
                                            (k_pp, end_k, self._k_band))   # [M K]: CSR
@@ -596,7 +593,7 @@ class ChainNewmark(Newmark):
         """u' = A^-1 r of the right side r in ``_rhs`` (overwritten) into the state's work row
         (class docstring): y = A_ii^-1 r_i (dpbtrs in place), u_p = [S^-1, -S^-1 A_ip^T] [r_p; y],
         u_i = y - Z u_p."""
-        if self._b_pair is None:
+        if self._factor is None:
             np.matmul(self._s_inv, self._rhs, out=self._u_new)
             return
         _pbtrs(self._factor, self._r_i, lower=1, overwrite_b=1)
@@ -609,7 +606,7 @@ class ChainNewmark(Newmark):
         state's own row: copy it to keep it past the next step)."""
         np.matmul(self._state_map, self._state, out=self._work)           # x, y, w_a, w_v
         rhs = self._rhs                                                   # F + M x + K y
-        if self._b_pair is None:
+        if self._factor is None:
             np.matmul(self._pair_matrix, self._xy, out=rhs)
             np.add(rhs, force, out=rhs)
         else:

@@ -76,7 +76,8 @@ from msg_adapters.markers import equilibrium_markers, update_arrow
 from msg_adapters.pose import fill_pose, pose_message
 from msg_adapters.inputs import NUMERIC_ERRORS, InputHandler, first_line
 from msg_adapters.stamps import StampPolicy
-from msg_adapters.validation import InvalidMessage, clip, ns_to_stamp, s_to_stamp, stamp_to_ns
+from msg_adapters.validation import (InvalidMessage, clip, clock_ns, ns_to_stamp, s_to_stamp,
+                                     stamp_to_ns)
 
 NODE_NAME = 'cdpr_dynamics'
 IO_SUFFIX = '_io'         # the companion node of pose and wrench: '<name>_io', same namespace
@@ -466,7 +467,7 @@ class DynamicsNode(Node):
         """Move the model to the pose; rebuild only when it moved more than the tolerance."""
         background = self._background is not None
         try:
-            update = self.inputs.pose(msg, self._now_ns(),
+            update = self.inputs.pose(msg, clock_ns(self._node_clock),
                                       self._hold_pose if background else None)
         except InvalidMessage as exc:
             self._reject(self.pose_health, exc.kind, str(exc))
@@ -552,7 +553,7 @@ class DynamicsNode(Node):
         """Advance the integrator to the wrench's stamp and publish the prediction."""
         start = time.perf_counter()
         try:
-            self.inputs.wrench(msg, self._now_ns())
+            self.inputs.wrench(msg, clock_ns(self._node_clock))
         except InvalidMessage as exc:
             self._reject(self.wrench_health, exc.kind, str(exc))
             return
@@ -573,13 +574,6 @@ class DynamicsNode(Node):
         self._compute_s.append(computed - start)
         self._publish_s.append(now - computed)
         self._wrench_times.append(now)
-
-    def _now_ns(self) -> int:
-        """The node's clock (ns): ROS time, which is the system time unless simulated time is
-        active (``use_sim_time``); read here without rclpy's Time object (8-15 us per wrench)
-        where it is the system time."""
-        clock = self._node_clock
-        return clock.now().nanoseconds if clock.ros_time_is_active else time.time_ns()
 
     def _reject(self, health: InputHealth, kind: str, reason: str) -> None:
         if health.reject(kind, reason):

@@ -6,6 +6,7 @@ node puts into its diagnostics and its log.
 from __future__ import annotations
 
 import math
+import time
 
 from builtin_interfaces.msg import Time
 
@@ -16,6 +17,12 @@ class InvalidMessage(ValueError):
     def __init__(self, reason: str, kind: str = 'invalid'):
         super().__init__(reason)
         self.kind = kind  # short category for counters: not_finite, frame, stamp, ...
+
+
+def clock_ns(clock) -> int:
+    """Now (ns) on an rclpy ROSClock: its ROS time where simulated time is active, else the
+    system time, read without rclpy's Time object (8-15 us a call)."""
+    return clock.now().nanoseconds if clock.ros_time_is_active else time.time_ns()
 
 
 def ns_to_stamp(ns: int) -> Time:

@@ -16,7 +16,7 @@ from numpy.testing import assert_allclose
 
 from cdpr_dynamics.analysis import build_system, damping_for, equilibrium, new_tension_solver
 from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import ChainNewmark, Newmark
+from cdpr_dynamics.dynamics import ChainNewmark, Newmark, _chain_coupling, _end_coupling
 from cdpr_dynamics.feasibility import WrenchSet
 from cdpr_dynamics.live import LivePredictor
 from cdpr_dynamics.robot import cross, geometry, required_wrench
@@ -81,9 +81,12 @@ def test_chain_bands_hold_the_assembled_matrices_exactly(config):
     _, system, damping = _system(config, 'fem', 4)
     chain = ChainNewmark(system, damping, 1e-3)
     nd, n = system.platform_dofs, system.dofs
+    blocks, g = system.assembly.blocks, system.geometry.attachment_map()
+    k_coupling, m_coupling = (_chain_coupling(_end_coupling(off, g), blocks.nodes - 1)
+                              for off in (blocks.k_off, blocks.m_off))
     for band, coupling, platform, full in (
-            (chain._k_band, chain._b_pair[:, nd:], chain._p_pair[:, nd:], chain.k.toarray()),
-            (chain._m_band, chain._b_pair[:, :nd], chain._p_pair[:, :nd], chain.m.toarray())):
+            (chain._k_band, k_coupling, chain._p_pair[:, nd:], chain.k.toarray()),
+            (chain._m_band, m_coupling, chain._p_pair[:, :nd], chain.m.toarray())):
         rebuilt = np.zeros((n, n))
         ni = n - nd
         for offset in range(band.shape[0]):

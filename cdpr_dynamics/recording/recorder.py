@@ -24,6 +24,7 @@ from cdpr_dynamics.recording.base import (
     RecordingError, RecordingSummary)
 from cdpr_dynamics.recording.writer import ChunkedFile
 from msg_adapters import mcap_schema
+from msg_adapters.validation import clock_ns
 
 _TICK_S = 0.1        # how often the chunk age and the ROS graph are checked
 _DISCOVERY_S = 0.2
@@ -212,11 +213,8 @@ class Recorder:
             sent = info.get('source_timestamp') or 0
             received = info.get('received_timestamp') or 0
             sequence = info.get('publication_sequence_number') or 0
-        clock = self._clock        # its Time object costs more than the write below
-        if clock.ros_time_is_active:
-            now = clock.now().nanoseconds
-        else:
-            now = received if received > 0 else time.time_ns()
+        clock = self._clock
+        now = received if received > 0 and not clock.ros_time_is_active else clock_ns(clock)
         with self._lock:
             if self._closed:
                 return
