@@ -32,3 +32,21 @@ def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
     assert modes['counted']['p50_s'] > 0 and modes['eigensolver']['p50_s'] > 0
     replay = {r['method']: r for r in result['replay']}
     assert set(replay) == {'spring', 'fem'} and all(r['inputs'] > 0 for r in replay.values())
+
+
+def test_compute_per_wrench_scales_its_load_to_what_the_cables_hold():
+    """The rigid 6-DOF robot holds less than 1000 N along z: the bench's wrench load halves
+    until both signs are feasible instead of failing on the first rejected wrench."""
+    from pathlib import Path
+
+    from cdpr_dynamics.cli.bench_node import compute_per_wrench
+    from cdpr_dynamics.config import load_settings
+    from cdpr_dynamics.live import LivePredictor
+    settings = load_settings(Path(__file__).parent / 'data' / 'rigid_cdpr.yaml')
+    result = compute_per_wrench(settings, n=300)
+    amplitude = result['amplitude_n']
+    assert amplitude < 1000.0 and result['p50_ms'] > 0
+    predictor = LivePredictor(settings)
+    held = [not predictor.wrench_reason((0.0, 0.0, sign * scale * amplitude))
+            for scale in (1.0, 2.0) for sign in (1.0, -1.0)]
+    assert held[:2] == [True, True] and not all(held[2:])   # twice as much is not held

@@ -326,7 +326,9 @@ def summary(result: dict) -> str:
                      f"(x{row['counted_over_eigensolver']:.3f})")
         lines.append(text)
     wrench = result['node_compute_per_wrench']
-    lines.append(f"node compute per wrench ({wrench['method']}, {wrench['dofs']} DOFs) p50/p99 "
+    lines.append('node compute per wrench: ' + wrench['error'] if 'error' in wrench else
+                 f"node compute per wrench ({wrench['method']}, {wrench['dofs']} DOFs, "
+                 f"{wrench['amplitude_n']:g} N at 5 Hz) p50/p99 "
                  f"{wrench['p50_ms']:.3f}/{wrench['p99_ms']:.3f} ms")
     for method, row in result['node_pose_update'].items():
         lines.append(f"node pose update {method}: " + (row['error'] if 'error' in row else
