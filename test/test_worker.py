@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -67,11 +69,36 @@ def test_a_failing_job_gives_its_reason_and_the_worker_carries_on(worker):
 
 
 def test_the_worker_runs_below_the_node(worker):
-    """The child yields the cores to its parent's wrench path: nice NICE above the parent."""
+    """The child yields the cores to its parent's wrench path: every thread of it (numpy's BLAS
+    threads too) runs under SCHED_IDLE, and the node's threads do not."""
     with pytest.raises(JobFailed):          # any answer: the child is up and serving
         worker.submit('no_such_job').result(TIMEOUT_S)
-    parent = os.getpriority(os.PRIO_PROCESS, 0)
-    assert os.getpriority(os.PRIO_PROCESS, worker._process.pid) == min(19, parent + NICE)
+    threads = [int(tid) for tid in os.listdir(f'/proc/{worker._process.pid}/task')]
+    assert [os.sched_getscheduler(tid) for tid in threads] == [os.SCHED_IDLE] * len(threads)
+    assert os.sched_getscheduler(0) != os.SCHED_IDLE
+
+
+def test_without_sched_idle_the_worker_runs_niced():
+    """Where SCHED_IDLE is refused, each thread of the child gets nice NICE above its own."""
+    code = ('import os, threading\n'
+            'def refuse(*args):\n'
+            '    raise PermissionError("not permitted")\n'
+            'os.sched_setscheduler = refuse\n'
+            'gate = threading.Event()\n'
+            'other = threading.Thread(target=gate.wait)\n'
+            'other.start()\n'
+            'from cdpr_dynamics.worker import _yield_to_parent\n'
+            'before = os.getpriority(os.PRIO_PROCESS, other.native_id)\n'
+            '_yield_to_parent()\n'
+            'print(before, os.getpriority(os.PRIO_PROCESS, 0),\n'
+            '      os.getpriority(os.PRIO_PROCESS, other.native_id), os.sched_getscheduler(0))\n'
+            'gate.set()\n')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         timeout=TIMEOUT_S, env={**os.environ, 'PYTHONPATH': str(REPO)})
+    assert out.returncode == 0, out.stderr
+    before, main_nice, other_nice, policy = map(int, out.stdout.split())
+    assert main_nice == other_nice == min(19, before + NICE)
+    assert policy == os.SCHED_OTHER
 
 
 def test_a_killed_worker_fails_its_job_and_is_started_again():
