@@ -201,7 +201,8 @@ def recorded(path: Path) -> dict:
 def test_the_demo_starts_after_the_match_and_reports_what_its_recording_holds(
         ros_env, tmp_path):
     png, mcap, summary = tmp_path / 'demo.png', tmp_path / 'demo.mcap', tmp_path / 'demo.json'
-    run = subprocess.run([installed('cdpr_demo'), '--duration', '1.5', '--output', str(png),
+    run = subprocess.run([installed('cdpr_demo'), '--duration', '1.5',   # no suffix: .png
+                          '--output', str(png.with_suffix('')),
                           '--record', str(mcap), '--json', str(summary)], env=ros_env,
                          capture_output=True, text=True, timeout=180)
     assert run.returncode == 0, run.stderr[-3000:]

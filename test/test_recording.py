@@ -498,6 +498,10 @@ def test_sigkill_loses_at_most_the_last_second(procs, output_dir):
 
 
 def test_throughput_with_a_flooding_publisher(procs, output_dir):
+    """A publisher as fast as it can go: the recorder keeps up without a crash, ends cleanly
+    on SIGINT with a finished file, and what it kept are distinct messages of the publisher,
+    in the order sent. The rate is printed here and measured by cdpr_bench (timings belong in
+    benchmarks)."""
     path = output_dir / 'flood.mcap'
     recorder = procs.recorder(path, '--topics', 'pose')
     done = output_dir / 'flood.json'
@@ -514,9 +518,10 @@ def test_throughput_with_a_flooding_publisher(procs, output_dir):
           f'{published["seconds"]:.1f} s ({published["published"] / published["seconds"]:.0f}/s); '
           f'recorded {n} at {rate:.0f} msg/s, {per_message:.0f} bytes/message in the file '
           f'(2 cores shared by both processes)')
-    assert rate > 1000
     xs = [int(m.message.pose.position.x) for m in read_messages(path)]
-    assert xs == sorted(xs)
+    assert len(xs) == n > 0
+    assert all(a < b for a, b in zip(xs, xs[1:])), 'a message twice or out of order'
+    assert 0 <= xs[0] and xs[-1] < published['published']
 
 
 # ----------------------------------------------------------------------------- bad files (no ROS)

@@ -601,6 +601,8 @@ def main(argv=None) -> int:
         except DemoError as exc:
             print(exc, file=sys.stderr)     # the demo says 'controller failed: ...'
             return 1
+    if not Path(args.output).suffix:    # the file matplotlib writes: the name and '.png'
+        args.output = str(Path(args.output).with_suffix('.png'))
     if args.no_record:
         args.record = None
     elif args.record is None:
