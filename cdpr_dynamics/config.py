@@ -124,7 +124,7 @@ NODE_PARAMETERS: tuple[Param, ...] = (
           'normalised)', 0.0, 0.5),
     Param('node.diagnostics_period_s', 1.0, 'period of /diagnostics when nothing changes (s); '
           'changes are published within 0.1 s', 0.1, 60.0),
-    Param('node.wrench_queue_depth', 200, 'depth of the best-effort wrench subscription: how '
+    Param('node.wrench_queue_depth', 1000, 'depth of the best-effort wrench subscription: how '
           'many wrenches wait while the node is busy before the oldest are dropped', 1, 10000),
     Param('node.rebuild', 'inline', 'where a moved pose is solved: inline (before the next '
           'wrench, as cdpr_replay does) or worker (the tensions and sag-consistent statics in a '
