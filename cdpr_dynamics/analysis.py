@@ -5,6 +5,7 @@ Every step raises :class:`AnalysisError` with a one-line reason that names the c
 """
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -206,7 +207,7 @@ def model_warnings(settings: Settings, eq: Equilibrium, assembly) -> list[str]:
     """
     warnings = list(eq.warnings)
     lam2 = sag_parameter(eq.cables)
-    worst = float(np.max(lam2, initial=0.0))
+    worst = float(lam2.max(initial=0.0))
     tol = settings.tolerance
     method, n = assembly.method, assembly.elements_per_cable
     if method in models.STRAIGHT_METHODS and worst / 12.0 > tol:
@@ -214,7 +215,7 @@ def model_warnings(settings: Settings, eq: Equilibrium, assembly) -> list[str]:
         warnings.append(f'sag: lambda^2 up to {worst:.3g}; {method} ignores sag and '
                         f'overestimates the axial stiffness by {error} (> model.tolerance '
                         f'{100 * tol:g} %): use catenary_exact or fem_sag')
-    if method == 'fem_sag' and np.isfinite(worst):
+    if method == 'fem_sag' and math.isfinite(worst):
         error = (worst / (12.0 * n * n)) / (1.0 + worst * (1.0 - 1.0 / (n * n)) / 12.0)
         if error > tol:
             size = f'~{100 * error:.3g} %' if error < 1.0 else 'more than 100 %'

@@ -12,6 +12,7 @@ Natural frequencies and classified modes: :mod:`cdpr_dynamics.modes` (above this
 """
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from dataclasses import dataclass
@@ -503,7 +504,7 @@ class ChainNewmark(Newmark):
     Few calls per step, into buffers made here, each operand in the layout its BLAS/LAPACK
     call takes without a copy (the factor Fortran-ordered, vectors contiguous): one GEMM
     (x, y, w_a, w_v) = E (u, v, a) of the state; the right side as one product with
-    [M K] (n, 2n) in CSR (:func:`_pair_rows`: the per-column loops of BLAS dsbmv cost 2-4x
+    [M K] (n, 2n) in CSR (:class:`_PairPattern`: the per-column loops of BLAS dsbmv cost 2-4x
     more on bands this narrow), dpbtrs in place, the Schur part as one product
     u_p = [S^-1, -S^-1 A_ip^T] [r_p; y] and u_i = y - Z u_p, and one GEMM for the new state,
     (u', v', a') = L (u', w_a, w_v) with a' = a0 u' + w_a, v' = w_v + a7 a' (Eqs. 48-49).
@@ -521,21 +522,15 @@ class ChainNewmark(Newmark):
                                 'use fem or fem_sag for modes and time histories')
         self._system, self._damping = system, damping
         self._setup(dt_s, alpha, beta)
-        a0, a1, a2, a3, a4, a5, a6, a7 = self.a
+        a0, a1 = self.a[:2]
         dm, dk = damping.mass_factor, damping.stiffness_factor
-        # what a step needs of (u, v, a), one GEMM: the right side of Eq. 47,
-        # M (a0 u + a2 v + a3 a) + C (a1 u + a4 v + a5 a) = M x + K y, and the parts of
-        # Eqs. 48-49 known before the solve: a' = a0 u' + w_a, v' = w_v + a7 a'
-        self._state_map = np.array([[a0 + dm * a1, a2 + dm * a4, a3 + dm * a5],     # x
-                                    [dk * a1, dk * a4, dk * a5],                    # y
-                                    [-a0, -a2, -a3],                                # w_a
-                                    [0.0, 1.0, a6]])                                # w_v
+        self._state_map, self._update = _step_maps(self.a, dm, dk)
         scale_k, scale_m = 1.0 + a1 * dk, a0 + a1 * dm                   # A = sK K + sM M
         g = system.geometry.attachment_map()
         nd = system.platform_dofs
         k_pp = _platform_block(system.platform_stiffness, blocks.k_diag, g)
         m_pp = _platform_block(system.platform_mass, blocks.m_diag, g)
-        self._p_pair = np.concatenate((m_pp, k_pp), axis=1)                # (nd, 2 nd)
+        self._pp = m_pp, k_pp                       # [M K]'s platform block: _p_pair
         a_pp = scale_k * k_pp + scale_m * m_pp
         interior = blocks.nodes - 1
         n = nd + 3 * interior * blocks.k_diag.shape[0]
@@ -544,31 +539,51 @@ class ChainNewmark(Newmark):
         self._xy = self._work[:2].reshape(-1)                             # [x; y] (2 n,)
         self._u_new, self._solved = self._work[1], self._work[1:]
         self._rhs = np.zeros(n)
-        self._update = np.array([[1.0, 0.0, 0.0], [a7 * a0, a7, 1.0], [a0, 1.0, 0.0]])
         if interior == 0:
             self._s_inv = _inverse(a_pp)
             self._factor = None                                           # no interior
             self._pair_matrix = self._p_pair                              # [M K]: (nd, 2 nd)
         else:
-            self._k_band = _chain_band(blocks.k_diag, blocks.k_off)
-            self._m_band = _chain_band(blocks.m_diag, blocks.m_off)
-            factor, info = _pbtrf(scale_k * self._k_band + scale_m * self._m_band, lower=1)
+            end_m, end_k = _end_coupling(blocks.m_off, g), _end_coupling(blocks.k_off, g)
+            pattern = _pair_pattern(nd, blocks.k_diag.shape[0], interior)
+            self._pattern = pattern
+            self._values = _pair_values((m_pp, end_m, blocks.m_diag, blocks.m_off),
+                                        (k_pp, end_k, blocks.k_diag, blocks.k_off))
+            values, band = self._values, pattern.band
+            factor, info = _pbtrf((scale_k * values.take(band[1])
+                                   + scale_m * values.take(band[0])).T, lower=1,
+                                  overwrite_ab=1)
             if info != 0:
                 raise np.linalg.LinAlgError(f'chain band not positive definite (dpbtrf info '
                                             f'{info})')
             self._factor = factor
-            end_m, end_k = _end_coupling(blocks.m_off, g), _end_coupling(blocks.k_off, g)
             coupling = _chain_coupling(scale_k * end_k + scale_m * end_m, interior)   # A_ip
             z, info = _pbtrs(factor, coupling, lower=1)
             self._z = z
             self._s_inv = _inverse(a_pp - coupling.T @ z)
-            self._pair_matrix = _pair_rows((m_pp, end_m, self._m_band),
-                                           (k_pp, end_k, self._k_band))   # [M K]: CSR
-            self._schur = np.concatenate((self._s_inv, -self._s_inv @ coupling.T), axis=1)
+            self._pair_matrix = pattern.matrix(values.take(pattern.take))  # [M K]: CSR
+            self._schur = np.empty((nd, n))                      # [S^-1, -S^-1 A_ip^T]
+            self._schur[:, :nd] = self._s_inv
+            np.matmul(-self._s_inv, coupling.T, out=self._schur[:, nd:])
             self._r_i = self._rhs[nd:]
             self._u_p, self._u_i = self._u_new[:nd], self._u_new[nd:]
             self._zu = np.zeros(n - nd)
         self._check_stability(alpha, beta)
+
+    @functools.cached_property
+    def _p_pair(self) -> np.ndarray:
+        """(nd, 2 nd): the platform block of [M K]."""
+        return np.concatenate(self._pp, axis=1)
+
+    @functools.cached_property
+    def _m_band(self) -> np.ndarray:
+        """(6, ni) lower band of the chains' M (:class:`_PairPattern`'s layout), on first use."""
+        return self._values.take(self._pattern.band[0]).T
+
+    @functools.cached_property
+    def _k_band(self) -> np.ndarray:
+        """(6, ni) lower band of the chains' K, on first use."""
+        return self._values.take(self._pattern.band[1]).T
 
     @functools.cached_property
     def _matrices(self):
@@ -617,24 +632,23 @@ class ChainNewmark(Newmark):
         return self._state[0]
 
 
-def _chain_band(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """(6, ni) lower band storage (LAPACK: band[r - c, c] = A[r, c], Fortran order) of the
-    cables' interior chains, one chain after another: the symmetric block-tridiagonal blocks
-    ``diag[:, :-1]`` and ``off[:, :-1]`` of :class:`~cdpr_dynamics.models.base.ChainBlocks`.
+@functools.lru_cache(maxsize=16)
+def _step_maps(a: tuple, dm: float, dk: float) -> tuple[np.ndarray, np.ndarray]:
+    """(E (4, 3), L (3, 3)) of :class:`ChainNewmark`'s step for the coefficients ``a`` of
+    Eqs. 46-50 and Rayleigh's dM, dK, read-only (kept: they depend on these numbers only).
 
-    Column c = (cable, node j, component b) holds A[c + k, c], k = 0..5: the column b of the
-    node's 8 x 3 slab P_j = A[3j : 3j + 8, 3j : 3j + 3] = [D_j; O_j^T; 0] from its row b
-    down, band[k, c] = P_j[b + k, b] (O_j = block (j, j+1), zero past each chain's last
-    node). In the C-ordered slabs that entry sits at 4 b + 3 k: the band is one strided view
-    of them, and its C-ordered copy (ni, 6) transposed the Fortran band."""
-    cables, interior = diag.shape[0], diag.shape[1] - 1
-    slab = np.zeros((cables, interior, 8, 3))
-    slab[:, :, :3] = diag[:, :-1]
-    slab[:, :-1, 3:6] = np.swapaxes(off[:, :-1], -1, -2)
-    item = slab.itemsize
-    skew = np.ndarray((cables * interior, 3, 6), slab.dtype, slab, 0,
-                      (24 * item, 4 * item, 3 * item))     # [(c, j), b, k] = P_j[b + k, b]
-    return skew.reshape(-1, 6).T
+    E maps the state (u, v, a) to what a step needs, one GEMM: the right side of Eq. 47,
+    M (a0 u + a2 v + a3 a) + C (a1 u + a4 v + a5 a) = M x + K y, and the parts of Eqs. 48-49
+    known before the solve, a' = a0 u' + w_a, v' = w_v + a7 a'; L gives (u', v', a') from
+    (u', w_a, w_v)."""
+    a0, a1, a2, a3, a4, a5, a6, a7 = a
+    state_map = np.array([[a0 + dm * a1, a2 + dm * a4, a3 + dm * a5],     # x
+                          [dk * a1, dk * a4, dk * a5],                    # y
+                          [-a0, -a2, -a3],                                # w_a
+                          [0.0, 1.0, a6]])                                # w_v
+    update = np.array([[1.0, 0.0, 0.0], [a7 * a0, a7, 1.0], [a0, 1.0, 0.0]])
+    state_map.flags.writeable = update.flags.writeable = False
+    return state_map, update
 
 
 def _add_product(matrix: sp.csr_matrix, x: np.ndarray, out: np.ndarray) -> None:
@@ -645,60 +659,95 @@ def _add_product(matrix: sp.csr_matrix, x: np.ndarray, out: np.ndarray) -> None:
                 x, out)
 
 
-def _pair_rows(m_parts, k_parts) -> sp.csr_matrix:
-    """[M K] (n, 2n) in CSR, n = nd + ni, from each matrix's (platform block (nd, nd), end
-    coupling (ncab, 3, nd) = O_c,last G_c, lower band (6, ni) of :func:`_chain_band`): the
-    platform block, the couplings of each cable's last interior node to the platform (both
-    triangles) and the band entries (both triangles, the zeros between chains included), laid
-    out by the cached pattern of :func:`_pair_pattern`: one gather per model, no sorting."""
-    platform, end, band = m_parts
-    pattern = _pair_pattern(platform.shape[0], end.shape[0], band.shape[1] // (3 * end.shape[0]))
-    source = np.concatenate([np.concatenate((p.ravel(), e.ravel(), b.ravel()))
-                             for p, e, b in (m_parts, k_parts)])
-    return sp.csr_matrix((source.take(pattern.take), pattern.indices, pattern.indptr),
-                         shape=pattern.shape)
+def _pair_values(m_parts, k_parts) -> np.ndarray:
+    """The values :class:`_PairPattern` gathers from: each matrix's (platform block (nd, nd),
+    end coupling (ncab, 3, nd) = O_c,last G_c, diagonal blocks (ncab, nodes, 3, 3), off-
+    diagonal blocks (ncab, nodes - 1, 3, 3)) flattened, M then K, and one 0.0 (the band's
+    structural zeros): one concatenation of views."""
+    return np.concatenate([part.ravel() for part in m_parts + k_parts] + [_ZERO])
+
+
+_ZERO = np.zeros(1)
 
 
 @dataclass(frozen=True, eq=False)
 class _PairPattern:
-    """CSR structure of [M K] (:func:`_pair_rows`) and, per stored entry, its index in the
-    concatenated (platform, coupling, band) values of M then K."""
+    """What does not change between the models of one size (nd platform DOFs, ``cables``
+    chains of ``interior`` nodes): the CSR structure of the step's [M K] (n, 2n) and where
+    each of its entries and each band entry sits in :func:`_pair_values`.
+
+    ``take``: per stored CSR entry its index in the values; ``band`` (2, ni, 6): the indices
+    of M's and K's lower band, band[k, c] = A[c + k, c] (LAPACK storage, the C-ordered
+    (ni, 6) gather transposed is Fortran (6, ni)) of the chains one after another; column
+    c = (cable, node j, component b) holds the column b of the node's 8 x 3 slab
+    [D_j; O_j^T; 0] from its row b down (O_j = block (j, j+1), zero past each chain's last
+    interior node). ``template``: a CSR matrix of this structure whose index arrays are
+    read-only (shared by every :meth:`matrix`)."""
 
     indptr: np.ndarray
     indices: np.ndarray
     take: np.ndarray
+    band: np.ndarray
     shape: tuple
+    template: sp.csr_matrix
+
+    def matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """[M K] in CSR with these ``data`` (one per stored entry, in :attr:`take`'s order):
+        a shallow copy of the template (its structure shared, never written), no checks."""
+        out = copy.copy(self.template)
+        out.data = data
+        return out
 
 
 @functools.lru_cache(maxsize=16)
 def _pair_pattern(nd: int, cables: int, interior: int) -> _PairPattern:
-    """The structure of :func:`_pair_rows` for ``cables`` chains of ``interior`` nodes."""
+    """The :class:`_PairPattern` of ``cables`` chains of ``interior`` interior nodes: [M K]
+    holds the platform block, the couplings of each cable's last interior node to the
+    platform (both triangles) and the band entries (both triangles, the zeros between chains
+    included), rows sorted, one gather per model."""
     ni = 3 * interior * cables
     n = nd + ni
+    nodes = interior + 1
+    coupling_at = nd * nd
+    diag_at = coupling_at + cables * 3 * nd
+    off_at = diag_at + cables * nodes * 9
+    size = off_at + cables * interior * 9           # values of one matrix
+    zero = 2 * size
+    # band[k, col], col = (c, j, b): row r = b + k of the slab [D_j; O_j^T; 0]
+    col, k = np.divmod(np.arange(6 * ni), 6)                 # (ni, 6) C order: [col, k]
+    c, rest = np.divmod(col, 3 * interior)
+    j, b = np.divmod(rest, 3)
+    r = b + k
+    band = np.where(r < 3, diag_at + ((c * nodes + j) * 3 + np.minimum(r, 2)) * 3 + b, zero)
+    upper = (r >= 3) & (r < 6) & (j < interior - 1)
+    band = np.where(upper, off_at + ((c * interior + j) * 3 + b) * 3 + (r - 3), band)
     # platform block: (i, j) = platform[i, j]
-    i, j = np.divmod(np.arange(nd * nd), nd)
-    parts = [(i, j, np.arange(nd * nd))]
+    i, jj = np.divmod(np.arange(nd * nd), nd)
+    parts = [(i, jj, np.arange(nd * nd))]
     # coupling: cable c's last interior node, component b, to platform DOF j; and its mirror
-    c, b, j = np.unravel_index(np.arange(cables * 3 * nd), (cables, 3, nd))
-    node = nd + 3 * interior * c + 3 * (interior - 1) + b
-    at = nd * nd + np.arange(cables * 3 * nd)
-    parts += [(node, j, at), (j, node, at)]
-    # band: (c + k, c) = band[k, c] in interior indices; and the mirror of k > 0
-    k, col = np.divmod(np.arange(6 * ni), ni)
+    cc, bb, jj = np.unravel_index(np.arange(cables * 3 * nd), (cables, 3, nd))
+    node = nd + 3 * interior * cc + 3 * (interior - 1) + bb
+    at = coupling_at + np.arange(cables * 3 * nd)
+    parts += [(node, jj, at), (jj, node, at)]
+    # band entries inside the matrix (col + k < ni), and the mirror of k > 0
     keep = col + k < ni
-    k, col = k[keep], col[keep]
-    at = nd * nd + cables * 3 * nd + k * ni + col
-    mirror = k > 0
-    parts += [(nd + col + k, nd + col, at),
-              (nd + col[mirror], nd + col[mirror] + k[mirror], at[mirror])]
+    kk, cl, at = k[keep], col[keep], band[keep]
+    mirror = kk > 0
+    parts += [(nd + cl + kk, nd + cl, at),
+              (nd + cl[mirror], nd + cl[mirror] + kk[mirror], at[mirror])]
     rows, cols, src = (np.concatenate(v) for v in zip(*parts))
-    size = nd * nd + cables * 3 * nd + 6 * ni           # values of one matrix
     rows, cols, src = (np.concatenate((rows, rows)), np.concatenate((cols, cols + n)),
-                       np.concatenate((src, src + size)))              # M, then K
+                       np.concatenate((src, np.where(src == zero, zero, src + size))))  # M, K
     order = np.lexsort((cols, rows))
-    indptr = np.concatenate(([0], np.cumsum(np.bincount(rows, minlength=n))))
-    return _PairPattern(indptr.astype(np.int32), cols[order].astype(np.int32), src[order],
-                        (n, 2 * n))
+    indptr = np.concatenate(([0], np.cumsum(np.bincount(rows, minlength=n)))).astype(np.int32)
+    indices = cols[order].astype(np.int32)
+    band = band.reshape(ni, 6)
+    band = np.stack([band, np.where(band == zero, zero, band + size)])
+    template = sp.csr_matrix((np.zeros(indices.size), indices, indptr), shape=(n, 2 * n))
+    for array in (template.indptr, template.indices, src, band):
+        array.flags.writeable = False
+    return _PairPattern(template.indptr, template.indices, src[order], band, (n, 2 * n),
+                        template)
 
 
 def _chain_coupling(end: np.ndarray, interior: int) -> np.ndarray:
@@ -712,7 +761,7 @@ def _chain_coupling(end: np.ndarray, interior: int) -> np.ndarray:
 def _inverse(a: np.ndarray) -> np.ndarray:
     """a^-1 of a small square matrix by LAPACK gesv (A X = I), as ``np.linalg.inv`` computes
     it, without numpy's wrapper; ``np.linalg.LinAlgError`` where a is singular."""
-    _, _, inverse, info = _gesv(a, np.eye(a.shape[0]))
+    _, _, inverse, info = _gesv(a, np.eye(a.shape[0], order='F'), overwrite_b=1)
     if info != 0:
         raise np.linalg.LinAlgError('Singular matrix')
     return np.ascontiguousarray(inverse)     # C order, as numpy's: products sum as they did

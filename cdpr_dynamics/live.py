@@ -469,5 +469,6 @@ def wrench_set_at(settings: Settings, eq: Equilibrium) -> WrenchSet:
 def _tangent_structure(eq: Equilibrium) -> np.ndarray:
     """W^T of the forces along each cable's end direction at ``eq`` (the chord for chord
     statics, the catenary's end tangent for sagged cables): wrench per unit tension."""
-    unit = eq.end_force_n / np.linalg.norm(eq.end_force_n, axis=1)[:, None]
+    force = eq.end_force_n
+    unit = force / np.sqrt(np.add.reduce(force * force, axis=1))[:, None]   # as norm(axis=1)
     return structure_of(unit, eq.geometry.lever_m, eq.geometry.structure_matrix.shape[0])

@@ -176,13 +176,14 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
     warnings = []
     tension = np.asarray(cables.tension_n if start is None else start.tension_n, dtype=float)
     tension = _clip(tension, lower, t_max_n)
-    state = catenary.solve(cables.with_tension(tension),
-                           start=None if start is None else start.state)
+    state, d_force, d_length = catenary.solve_with_sensitivity(
+        cables.with_tension(tension), start=None if start is None else start.state)
     lift = ~state.valid          # and the cables lifted at the previous pose: lifted again here
     if start is not None:
         lift |= start.lower_bound_n > t_min_n
-    if lift.any():
+    if any(lift.tolist()):
         lower, state, tension, text = _lift(cables, lift, tension, lower, t_max_n)
+        d_force, d_length = catenary.tension_sensitivity(state, cables)     # (its chords)
         warnings += text
 
     force = wrench[:3]              # |f| and max |r_i| as np.linalg.norm computes them
@@ -198,7 +199,6 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
     rho = 0.0                       # proximal weight: grows while steps are cut, falls after
     iterations = 0
     for iterations in range(1, max_iterations + 1):
-        d_force, d_length = catenary.tension_sensitivity(state, cables)    # (its chords)
         a_mat = structure_of(-d_force, lever, ndof)
         if not _all(np.isfinite(a_mat), axis=None):
             i = int(np.flatnonzero(~np.all(np.isfinite(d_force), axis=1))[0])
@@ -226,8 +226,9 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
             guess = state._replace(force_n=state.force_n + change[:, None] * d_force,
                                    unstrained_length_m=state.unstrained_length_m
                                    + change * d_length)
-            trial_state = catenary.solve(cables.with_tension(trial), start=guess)
-            if _all(trial_state.valid):
+            trial_state, *trial_sensitivity = catenary.solve_with_sensitivity(
+                cables.with_tension(trial), start=guess, warm_only=True)
+            if all(trial_state.valid.tolist()):
                 trial_residual = cable_wrench(-trial_state.force_n, lever, ndof) - wrench
                 trial_size = _max(np.abs(trial_residual) / tol)
                 if trial_size <= max((1.0 - 1e-4 * alpha) * size, 1.0):
@@ -237,6 +238,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
             break               # no progress along the QP's direction: judged below (an
             #                     already balanced state is kept, with a warning)
         tension, state, residual = trial, trial_state, trial_residual
+        d_force, d_length = trial_sensitivity
         rho = rho / 4.0 if alpha == 1.0 else max(4.0 * rho, 1.0) if alpha < 0.25 else rho
         rho = 0.0 if rho < 1e-3 else rho
     worst = int(np.argmax(np.abs(residual) / tol))

@@ -17,6 +17,7 @@ Models are registered by name in :mod:`cdpr_dynamics.models`.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
@@ -53,9 +54,10 @@ class CableSet:
     def unit(self) -> np.ndarray:
         return self.chord_m / self.length_m[:, None]
 
-    @property
+    @functools.cached_property
     def mass_per_length_kg_m(self) -> float:
-        g = float(np.linalg.norm(self.gravity_m_s2))
+        g = np.asarray(self.gravity_m_s2, dtype=float).ravel()
+        g = math.sqrt(g.dot(g))                   # np.linalg.norm's arithmetic, no wrapper
         return self.weight_per_length_n_per_m / g if g > 0 else 0.0
 
     def with_tension(self, tension_n) -> 'CableSet':

@@ -88,6 +88,17 @@ from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse
 _all, _any = np.logical_and.reduce, np.logical_or.reduce    # ndarray.all/any without wrappers
 
 
+def _every(flags) -> bool:
+    """Whether every entry of a bool array is True: Python's all() over its list, ~10x
+    cheaper than the ufunc reduction on the few entries of a robot's cables."""
+    return all(flags.ravel().tolist())
+
+
+def _some(flags) -> bool:
+    """Whether any entry of a bool array is True (as :func:`_every`)."""
+    return any(flags.ravel().tolist())
+
+
 def _asinhc(x):
     """asinh(x)/x for x >= 0 (numpy's asinh keeps full relative precision near 0: the quotient
     equals the series 1 - x^2/6 + 3 x^4/40 there to 1e-16; x = 0 gives 1)."""
@@ -107,6 +118,7 @@ class _Parts(NamedTuple):
     q: np.ndarray
     s: np.ndarray
     min_tension: np.ndarray
+    a1: np.ndarray        # V - gamma L0, the vertical component of the tension vector at A
 
 
 def _closed_forms(v, h_vec, h2, length, gamma) -> _Parts:
@@ -117,7 +129,7 @@ def _closed_forms(v, h_vec, h2, length, gamma) -> _Parts:
     t_b = np.sqrt(h2 + v * v)
     t_a = np.sqrt(h2 + a1 * a1)
     same = v * a1 > 0.0
-    taut = _all(same, axis=None)        # no low point in any cable: one branch (same numbers)
+    taut = _every(same)                 # no low point in any cable: one branch (same numbers)
     total = v + a1
     p = total / (v * t_a + a1 * t_b)
     if not taut:
@@ -129,7 +141,7 @@ def _closed_forms(v, h_vec, h2, length, gamma) -> _Parts:
     min_tension = np.minimum(t_a, t_b)
     if not taut:
         min_tension = np.where(same, min_tension, np.sqrt(h2))
-    return _Parts(v, h_vec, h2, t_b, t_a, p, q, s, min_tension)
+    return _Parts(v, h_vec, h2, t_b, t_a, p, q, s, min_tension, a1)
 
 
 def _parts(force, length, gamma, up) -> _Parts:
@@ -231,10 +243,10 @@ class _Planes(NamedTuple):
     """The vertical plane of each cable's chord (module docstring, "In the plane"), per pose.
 
     ``horizontal`` (n, 3) the unit h, ``span_h``/``span_v`` (n,) l = -chord as l_h h + l_v e,
-    ``hh``, ``he`` (n, 3, 3) h h^T and h e^T + e h^T, ``ee`` (3, 3) e e^T, ``tol_scale``
-    max(L, 1) (m) of the closure tests, ``cos_h``, ``cos_v`` l/|l| in the plane and ``sin2``
-    1 - cos_v^2 (the parabola start of :func:`solve`); ``doubled`` the same with the spans and
-    lengths repeated (2n,), for :func:`_residual` of two starts per cable in one pass."""
+    ``tol_scale`` max(L, 1) (m) of the closure tests, ``cos_h``, ``cos_v`` l/|l| in the plane
+    and ``sin2`` 1 - cos_v^2 (the parabola start of :func:`solve`); ``doubled`` the same with
+    the spans and lengths repeated (2n,), for :func:`_residual` of two starts per cable in one
+    pass."""
 
     up: np.ndarray
     gamma: float
@@ -244,9 +256,6 @@ class _Planes(NamedTuple):
     horizontal: np.ndarray
     span_h: np.ndarray
     span_v: np.ndarray
-    hh: np.ndarray
-    he: np.ndarray
-    ee: np.ndarray
     tol_scale: np.ndarray
     cos_h: np.ndarray
     cos_v: np.ndarray
@@ -254,22 +263,24 @@ class _Planes(NamedTuple):
     doubled: '_Planes | None' = None     # span_h, span_v, length repeated: two starts at once
 
 
-_PLANES: list = []      # [(chord copy, gravity copy, EA, gamma/length, _Planes)]: the last few
+#: {(chord bytes, chord shape, gravity bytes, EA, gamma): _Planes}: the last ``_PLANES_KEPT``
+_PLANES: dict = {}
+_PLANES_KEPT = 4
 
 
 def _planes(cables: CableSet) -> _Planes:
     """:class:`_Planes` of ``cables``, kept for the last few chords (a pose's statics and
-    model ask for the same chords at many tensions; compared by value, so never stale)."""
+    model ask for the same chords at many tensions; keyed by the arrays' bytes, i.e. by value,
+    so never stale: a chord changed in place is a new key)."""
     chord = np.asarray(cables.chord_m, dtype=float)
     gravity = np.asarray(cables.gravity_m_s2, dtype=float)
-    key = (float(cables.ea_n), float(cables.weight_per_length_n_per_m))
-    for old_chord, old_gravity, old_key, planes in _PLANES:
-        if (old_key == key and old_chord.shape == chord.shape
-                and _all(old_chord == chord, axis=None) and _all(old_gravity == gravity)):
-            return planes
-    planes = _make_planes(cables, chord)
-    _PLANES.insert(0, (chord.copy(), gravity.copy(), key, planes))
-    del _PLANES[4:]
+    key = (chord.tobytes(), chord.shape, gravity.tobytes(), float(cables.ea_n),
+           float(cables.weight_per_length_n_per_m))
+    planes = _PLANES.get(key)
+    if planes is None:
+        planes = _PLANES[key] = _make_planes(cables, chord)
+        while len(_PLANES) > _PLANES_KEPT:            # the oldest first (insertion order)
+            _PLANES.pop(next(iter(_PLANES)), None)
     return planes
 
 
@@ -280,7 +291,7 @@ def _make_planes(cables: CableSet, chord: np.ndarray) -> _Planes:
     horizontal = -chord - span_v[:, None] * up
     span_h = _row_norm(horizontal)
     level = span_h > 1e-12 * length         # else a vertical chord: any horizontal h will do
-    if level.all():
+    if _every(level):
         horizontal = horizontal / span_h[:, None]
     else:
         axis = np.eye(3)[int(np.argmin(np.abs(up)))]
@@ -288,13 +299,11 @@ def _make_planes(cables: CableSet, chord: np.ndarray) -> _Planes:
         horizontal = np.where(level[:, None], horizontal / np.where(level, span_h, 1.0)[:, None],
                               axis / np.linalg.norm(axis))
         span_h = np.where(level, span_h, 0.0)
-    he = horizontal[:, :, None] * up
     cos_v = span_v / length
-    planes = _Planes(up, gamma, float(cables.ea_n), length, chord / length[:, None], horizontal,
-                     span_h, span_v, horizontal[:, :, None] * horizontal[:, None, :],
-                     he + he.transpose(0, 2, 1), up[:, None] * up, np.maximum(length, 1.0),
-                     span_h / length, cos_v, 1.0 - cos_v * cos_v)
     twice = np.concatenate([[span_h, span_v, length]] * 2, axis=1)
+    planes = _Planes(up, gamma, float(cables.ea_n), length, chord / length[:, None], horizontal,
+                     span_h, span_v, np.maximum(length, 1.0), span_h / length, cos_v,
+                     1.0 - cos_v * cos_v)
     for array in (*planes, twice):       # shared through the cache: read-only
         if isinstance(array, np.ndarray):
             array.flags.writeable = False
@@ -321,9 +330,12 @@ def _plane_stiffness(f_h, f_v, l0, planes: _Planes, r: _Parts) -> np.ndarray:
     c_hh, c_ee, c_he = c_nn - kh2, l0 / planes.ea + kh2, -m * f_h
     inv_det = 1.0 / (c_hh * c_ee - c_he * c_he)
     k_nn = 1.0 / c_nn
-    return (k_nn[:, None, None] * np.eye(3) + (c_ee * inv_det - k_nn)[:, None, None] * planes.hh
-            + (c_hh * inv_det - k_nn)[:, None, None] * planes.ee
-            - (c_he * inv_det)[:, None, None] * planes.he)
+    h, up = planes.horizontal, planes.up
+    he = h[:, :, None] * up                                 # h e^T, then + e h^T below
+    return (k_nn[:, None, None] * np.eye(3)
+            + (c_ee * inv_det - k_nn)[:, None, None] * (h[:, :, None] * h[:, None, :])
+            + (c_hh * inv_det - k_nn)[:, None, None] * (up[:, None] * up)
+            - (c_he * inv_det)[:, None, None] * (he + he.transpose(0, 2, 1)))
 
 
 # --------------------------------------------------------------------------- the exact solve
@@ -372,12 +384,14 @@ def _adjugate_solve(x, planes: _Planes, r: _Parts, rhs_h, rhs_v):
     L0 e) (the tension vector at A), C = [c_hh c_he; c_he c_ee] the in-plane flexibility
     (module docstring), so that C^-1 g = out[:, 0]/det and C^-1 rhs = out[:, 1]/det (rhs_h,
     rhs_v arrays (n,))."""
-    f_h, f_v, l0 = x
-    c_nn, k, m = _flexibility_terms(r, l0, planes.ea)
+    f_h, l0 = x[0], x[2]
+    elastic = l0 / planes.ea
+    tt = r.t_a * r.t_b                      # _flexibility_terms, L0/EA once
+    k, m = l0 * r.p / tt, r.s / tt
     kh2 = k * r.h2
-    c_hh, c_ee, c_he = c_nn - kh2, l0 / planes.ea + kh2, -m * f_h
+    c_hh, c_ee, c_he = elastic + r.q - kh2, elastic + kh2, -m * f_h
     g = 1.0 / planes.ea + 1.0 / r.t_a
-    b = np.array([[g * f_h, rhs_h], [g * (f_v - planes.gamma * l0), rhs_v]])
+    b = np.array([[g * f_h, rhs_h], [g * r.a1, rhs_v]])        # a1 = f_v - gamma L0
     adj = np.array([c_ee * b[0] - c_he * b[1], c_hh * b[1] - c_he * b[0]])
     return c_hh * c_ee - c_he * c_he, adj
 
@@ -422,44 +436,93 @@ def solve(cables: CableSet, max_iterations: int = 60,
     ``min_tension_ratio`` times T_i (slack: it cannot hold its own weight). ``max_iterations``
     and ``max_halvings`` (of each Newton step) bound the work, e.g. for cheap existence probes.
     """
+    return _solve(cables, max_iterations, min_tension_ratio, start, max_halvings, tolerance)[0]
+
+
+def solve_with_sensitivity(cables: CableSet, start: CatenaryState | None = None,
+                           warm_only: bool = False
+                           ) -> tuple[CatenaryState, np.ndarray, np.ndarray]:
+    """(:func:`solve` (default tolerances), then its :func:`tension_sensitivity`): the
+    sensitivity from the solve's own last evaluation at the solution (its in-plane (f_h, f_v,
+    L0) and closed forms) instead of the lifted forces projected back into the planes: the
+    same numbers to rounding, without a second evaluation (the sag statics' SQP asks for both
+    at every accepted iterate).
+
+    ``warm_only``: where every live cable's ``start`` is valid, Newton starts from it alone,
+    without the parabola beside it (for a first-order prediction of the solution, as the SQP's
+    trial steps give, the better start: the same solution to rounding); where that leaves any
+    cable invalid, the general solve decides (the same verdicts and reasons)."""
+    if warm_only and start is not None:
+        out = _solve(cables, 60, 1e-6, start, 30, 1e-13, True)
+        if out is not None and _every(out[0].valid):
+            return (out[0], *_sensitivity(out[1], out[2], out[3], out[0].valid))
+    state, x, parts, planes = _solve(cables, 60, 1e-6, start, 30, 1e-13)
+    return (state, *_sensitivity(x, parts, planes, state.valid))
+
+
+def _parabola_start(t_safe, planes: _Planes) -> np.ndarray:
+    """x = (f_h, f_v, L0) (3, n) of :func:`solve`'s taut parabola start (its docstring), the
+    straight cable where g >= T/4; the caller ignores floating-point warnings."""
+    cos_h, cos_v = planes.cos_h, planes.cos_v                          # l/|l| in the plane
+    x = np.array([t_safe * cos_h, t_safe * cos_v, planes.length / (1.0 + t_safe / planes.ea)])
+    if planes.gamma > 0.0:
+        g = 0.5 * planes.gamma * x[2]
+        disc = t_safe * t_safe - g * g * planes.sin2
+        taut = (g < 0.25 * t_safe) & (disc > 0.0)
+        if _every(taut):
+            c = -g * cos_v + np.sqrt(disc)
+            x[0], x[1] = c * cos_h, c * cos_v + g
+        else:
+            c = -g * cos_v + np.sqrt(np.where(taut, disc, 1.0))
+            x[:2] = np.where(taut, [c * cos_h, c * cos_v + g], x[:2])
+    return x
+
+
+def _warm_start(start: CatenaryState, planes: _Planes, t_safe):
+    """(f_h, f_v, L0) of a nearby solution: its end force in this chord's plane rescaled to
+    |F| = T, its L0."""
+    f_h, f_v = _in_plane(np.asarray(start.force_n, dtype=float), planes)
+    rescale = t_safe / np.sqrt(f_h * f_h + f_v * f_v)
+    return f_h * rescale, f_v * rescale, start.unstrained_length_m
+
+
+def _solve(cables, max_iterations, min_tension_ratio, start, max_halvings, tolerance,
+           warm_only=False):
+    """:func:`solve`, returning (state, x = (f_h, f_v, L0) (3, n) before the invalid cables'
+    stand-ins, the :class:`_Parts` of x, the planes); ``warm_only``
+    (:func:`solve_with_sensitivity`): from ``start`` alone, None where a live cable's start is
+    not valid."""
     planes = _planes(cables)
-    gamma, ea, length = planes.gamma, planes.ea, planes.length
+    gamma, length = planes.gamma, planes.length
     tension = np.asarray(cables.tension_n, dtype=float)
     n = length.size
     live = tension > 0
-    t_safe = np.where(live, tension, 1.0)
+    t_safe = tension if _every(live) else np.where(live, tension, 1.0)
     t_inv = 1.0 / t_safe
-    cos_h, cos_v = planes.cos_h, planes.cos_v                          # l/|l| in the plane
-    x = np.array([t_safe * cos_h, t_safe * cos_v, length / (1.0 + t_safe / ea)])
     with np.errstate(all='ignore'):       # trial states past slack give inf/nan: rejected
-        if gamma > 0.0:
-            g = 0.5 * gamma * x[2]
-            disc = t_safe * t_safe - g * g * planes.sin2
-            taut = (g < 0.25 * t_safe) & (disc > 0.0)
-            if _all(taut):
-                c = -g * cos_v + np.sqrt(disc)
-                x[0], x[1] = c * cos_h, c * cos_v + g
-            else:
-                c = -g * cos_v + np.sqrt(np.where(taut, disc, 1.0))
-                x[:2] = np.where(taut, [c * cos_h, c * cos_v + g], x[:2])
-        if start is None:
+        if warm_only:
+            if not _every(start.valid | ~live):
+                return None
+            x = np.array(_warm_start(start, planes, t_safe))
+            res, parts = _residual(x, planes, t_inv, length)
+            norm = _column_norm(res)
+        elif start is None:
+            x = _parabola_start(t_safe, planes)
             res, parts = _residual(x, planes, t_inv, length)
             norm = _column_norm(res)
         else:   # per cable the better start: the nearby solution or the parabola
-            f_h, f_v = _in_plane(np.asarray(start.force_n, dtype=float), planes)
-            rescale = t_safe / np.sqrt(f_h * f_h + f_v * f_v)
-            both = np.concatenate([x, [f_h * rescale, f_v * rescale,
-                                       start.unstrained_length_m]], axis=1)
+            both = np.concatenate([_parabola_start(t_safe, planes),
+                                   _warm_start(start, planes, t_safe)], axis=1)
             twice = planes.doubled
             res, parts = _residual(both, twice, np.concatenate([t_inv, t_inv]),
                                    twice.length)                 # both starts in one pass
             norm = _column_norm(res)
             warm = start.valid & live & (norm[n:] < norm[:n])
-            if _all(warm):
+            if _every(warm):
                 x, res, norm = both[:, n:], res[:, n:], norm[n:]
                 parts = _Parts(*(field[n:] for field in parts))
-            elif _any(warm):
-                x = np.where(warm, both[:, n:], both[:, :n])
+            elif _some(warm):    # (the parts again at x: the ufuncs' last bits depend on
+                x = np.where(warm, both[:, n:], both[:, :n])     # the array's length)
                 res = np.where(warm, res[:, n:], res[:, :n])
                 norm = np.where(warm, norm[n:], norm[:n])
                 parts = None
@@ -473,7 +536,9 @@ def solve(cables: CableSet, max_iterations: int = 60,
             parts = _residual(x, planes, t_inv, length)[1]
         t_a, t_min = parts.t_a, parts.min_tension
         residual = np.sqrt(res[0] * res[0] + res[1] * res[1])
-        residual = np.where(np.isfinite(residual), residual, np.inf)
+        finite = np.isfinite(residual)
+        if not _every(finite):
+            residual = np.where(finite, residual, np.inf)
         tension_error = np.abs(res[2]) / length
         converged = live & (residual <= ACCEPT_TOLERANCE * planes.tol_scale) & (
             tension_error <= ACCEPT_TOLERANCE)
@@ -481,7 +546,7 @@ def solve(cables: CableSet, max_iterations: int = 60,
     valid = converged & taut
     l0 = x[2]
     reasons = []
-    all_valid = _all(valid)
+    all_valid = _every(valid)
     for i in (range(n) if not all_valid else ()):
         if not live[i]:
             reasons.append(f'cable {i} is slack (T = {tension[i]:.3g} N <= 0)')
@@ -499,7 +564,8 @@ def solve(cables: CableSet, max_iterations: int = 60,
         l0 = np.where(valid, l0, length)
         t_a = np.where(valid, t_a, np.maximum(tension, 0.0))
         t_min = np.where(valid, t_min, np.minimum(tension, 0.0))
-    return CatenaryState(force, l0, t_a, t_min, residual, iterations, valid, tuple(reasons))
+    return (CatenaryState(force, l0, t_a, t_min, residual, iterations, valid, tuple(reasons)),
+            x, parts, planes)
 
 
 def _jacobian(force, l0, ea, gamma, up, row_scale, parts: _Parts | None = None
@@ -534,13 +600,21 @@ def tension_sensitivity(state: CatenaryState, cables: CableSet) -> tuple[np.ndar
     x = (f_h, f_v, np.asarray(state.unstrained_length_m, dtype=float))
     with np.errstate(all='ignore'):
         r = _closed_forms(f_v, f_h, f_h * f_h, x[2], planes.gamma)
+    return _sensitivity(x, r, planes, state.valid)
+
+
+def _sensitivity(x, r: _Parts, planes: _Planes, valid) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`tension_sensitivity` at x = (f_h, f_v, L0) with its :class:`_Parts` ``r``, NaN
+    where not ``valid`` or not finite."""
+    f_h, f_v = x[0], x[1]
+    with np.errstate(all='ignore'):
         det, adj = _adjugate_solve(x, planes, r, f_h, f_v)          # rhs unused here
         w = adj[:, 0]                                                 # det C^-1 g
         d_w = (f_h * w[0] + f_v * w[1]) / r.t_b                       # det (d.w)
         out = np.concatenate([w / d_w, (-det / d_w)[None]])
-    ok = state.valid & _all(np.isfinite(out), axis=0)
-    if not _all(ok):
-        out = np.where(ok, out, np.nan)
+    finite = np.isfinite(out)
+    if not (_every(finite) and _every(valid)):
+        out = np.where(valid & _all(finite, axis=0), out, np.nan)
     return _lift(out[0], out[1], planes), out[2]
 
 
@@ -556,23 +630,24 @@ def _newton(x, res, norm, tol, live, planes: _Planes, t_inv, scale, max_iteratio
     row_scale = scale * t_inv
     for iterations in range(1, max_iterations + 1):
         todo = live & (norm > tol)
-        if not _any(todo):
+        if not _some(todo):
             break
         if parts is None:
             parts = _residual(x, planes, t_inv, scale)[1]
         step = _newton_step(x, res, planes, row_scale, parts)
         ok = todo & _all(np.isfinite(step), axis=0)
-        step = np.where(ok, step, 0.0)
+        if not _every(ok):
+            step = np.where(ok, step, 0.0)
         trial = x + step                    # the full step first
         positive = trial[2] > 0
-        if not _all(positive):
+        if not _every(positive):
             trial[2] = np.where(positive, trial[2], x[2])   # evaluated at the old L0
         trial_r, trial_p = _residual(trial, planes, t_inv, scale)
         trial_n = _column_norm(trial_r)
         good = ok & positive & np.isfinite(trial_n) & ((trial_n < norm) | (trial_n <= tol))
-        if _all(good | ~ok):
+        if _every(good | ~ok):
             # all at the full step: cables without a step (step 0) sit where they were
-            if not _any(good):
+            if not _some(good):
                 break
             x, res, parts, norm = trial, trial_r, trial_p, trial_n
             continue
@@ -584,7 +659,7 @@ def _newton(x, res, norm, tol, live, planes: _Planes, t_inv, scale, max_iteratio
         for _ in range(1, max_halvings):
             trial = x + alpha * step
             positive = trial[2] > 0
-            if not _all(positive):
+            if not _every(positive):
                 trial[2] = np.where(positive, trial[2], x[2])
             trial_r = _residual(trial, planes, t_inv, scale)[0]
             trial_n = _column_norm(trial_r)
@@ -593,10 +668,10 @@ def _newton(x, res, norm, tol, live, planes: _Planes, t_inv, scale, max_iteratio
             new_x = np.where(good, trial, new_x)
             new_res = np.where(good, trial_r, new_res)
             improve |= good
-            if _all(improve | ~ok):
+            if _every(improve | ~ok):
                 break
             alpha = np.where(improve, alpha, 0.5 * alpha)
-        if not _any(improve):
+        if not _some(improve):
             break
         x, res, parts = new_x, new_res, None
         norm = _column_norm(res)
@@ -626,7 +701,7 @@ def _stiffness(f_h, f_v, l0, cables, ok, parts: _Parts | None = None) -> np.ndar
         if parts is None:
             parts = _closed_forms(f_v, f_h, f_h * f_h, l0, planes.gamma)
         stiffness = _plane_stiffness(f_h, f_v, l0, planes, parts)
-    if ok.all():
+    if _every(ok):
         return stiffness
     return np.where(ok[:, None, None], stiffness, _placeholder(cables))
 
@@ -665,7 +740,7 @@ def exists(cables: CableSet) -> np.ndarray:
     length = planes.length
     sure = (tension >= EXPLICIT_EXISTENCE_RATIO * planes.gamma * length) & (
         length >= EXISTENCE_TOLERANCE / ACCEPT_TOLERANCE)
-    return sure if _all(sure) else solve(cables, tolerance=EXISTENCE_TOLERANCE).valid
+    return sure if _every(sure) else solve(cables, tolerance=EXISTENCE_TOLERANCE).valid
 
 
 def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
@@ -682,8 +757,9 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     t_min = parts.min_tension
     spans = exists(cables)
     ok = (tension > 0) & (t_min > 1e-6 * np.abs(tension)) & spans
+    valid = bool(ok.all())
     warnings = []
-    for i in np.flatnonzero(~ok):
+    for i in () if valid else np.flatnonzero(~ok):
         if not tension[i] > 0:
             warnings.append(f'cable {i} is slack (T = {tension[i]:.3g} N <= 0)')
         elif not spans[i]:
@@ -695,7 +771,7 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
             warnings.append(f'cable {i} is slack: tension {tension[i]:.3g} N at the platform '
                             f'cannot hold the {gamma * length[i]:.3g} N cable hanging below it')
     return massless_assembly('catenary', _stiffness(f_h, f_v, length, cables, ok, parts),
-                             tension[:, None] * planes.unit, bool(np.all(ok)), warnings)
+                             tension[:, None] * planes.unit, valid, warnings)
 
 
 def paper_misclosure(cables: CableSet) -> np.ndarray:

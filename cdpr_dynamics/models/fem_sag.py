@@ -25,6 +25,7 @@ tension and the assembly is invalid with a warning.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import numpy as np
 
@@ -33,6 +34,7 @@ from cdpr_dynamics.models.base import CableAssembly, CableSet, ChainBlocks
 
 
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))   # symmetric 3x3 as 6 components
+_UPPER_FLAT = np.array([3 * i + k for i, k in _UPPER])        # the same in a flat 3x3
 
 
 def _sym_inverse_parts(a):
@@ -186,7 +188,7 @@ def _plane_points(state: catenary.CatenaryState, planes, n: int):
     plane") and the end force in it; ``planes`` the cables' ``catenary._planes``."""
     f_h, f_v = catenary._in_plane(state.force_n, planes)
     gamma = planes.gamma
-    sigma = state.unstrained_length_m[:, None] * ((n - np.arange(n + 1)) / n)[None, :]
+    sigma = state.unstrained_length_m[:, None] * _chain_shapes(n).fractions
     h, v = f_h[:, None], f_v[:, None]
     r = catenary._closed_forms(v, h, h * h, sigma, gamma)      # l(F, sigma) of Eq. 25
     elastic = sigma / planes.ea
@@ -211,24 +213,40 @@ def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = 
     Returns (ChainBlocks, element data for :func:`series_end_stiffness`, CatenaryState).
     The shapes are computed in each cable's plane (:func:`_plane_points`) and lifted to 3D.
     """
+    blocks, elements, state = _chains(cables, n, state)
+    return blocks, _series_elements(*elements), state
+
+
+def _series_elements(ee, axial, transverse, lumped):
+    """The element data of :func:`series_end_stiffness` from :func:`_chains`' (ee (ncab, n,
+    3, 3), axial (ncab,), transverse (ncab, n), lumped (ncab,))."""
+    return ee.reshape(ee.shape[:2] + (9,))[:, :, _UPPER_FLAT].transpose(2, 1, 0), axial, \
+        transverse.T, lumped
+
+
+def _chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = None):
+    """:func:`sag_chains` with its element data as (e e^T, axial, transverse, lumped mass):
+    :func:`_series_elements` gives the components where the end stiffness is asked for."""
     state = catenary.state_of(cables) if state is None else state
     planes = catenary._planes(cables)
     with np.errstate(all='ignore'):          # invalid cables: replaced just below
         (p_h, p_v), (f_h, f_v) = _plane_points(state, planes, n)
     valid = state.valid
-    if not valid.all():
-        fraction = (n - np.arange(n + 1)) / n          # the chord, straight
+    all_valid = valid.all()
+    if not all_valid:
+        fraction = _chain_shapes(n).fractions          # the chord, straight
         p_h = np.where(valid[:, None], p_h, -planes.span_h[:, None] * fraction)
         p_v = np.where(valid[:, None], p_v, -planes.span_v[:, None] * fraction)
-    d_h, d_v = np.diff(p_h, axis=1), np.diff(p_v, axis=1)                 # (ncab, n)
+    d_h, d_v = p_h[:, 1:] - p_h[:, :-1], p_v[:, 1:] - p_v[:, :-1]        # (ncab, n)
     chord_e = np.sqrt(d_h * d_h + d_v * d_v)
     e = (d_h / chord_e)[..., None] * planes.horizontal[:, None, :] \
         + (d_v / chord_e)[..., None] * planes.up                          # (ncab, n, 3)
+    shapes = _chain_shapes(n)
     l0 = state.unstrained_length_m / n                                    # (ncab,)
-    sigma_mid = l0[:, None] * (n - 0.5 - np.arange(n))[None, :]
+    sigma_mid = l0[:, None] * shapes.midpoints
     a1 = f_v[:, None] - planes.gamma * sigma_mid
     t_mid = np.sqrt((f_h * f_h)[:, None] + a1 * a1)
-    if not valid.all():
+    if not all_valid:
         t_mid = np.where(valid[:, None], t_mid, catenary.placeholder_tension(cables)[:, None])
     ee = e[..., :, None] * e[..., None, :]
     axial = cables.ea_n / l0
@@ -237,18 +255,45 @@ def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = 
     # cables, which splits the paper robot's equal clamped-chain frequencies by ~1e-13 and
     # sends the modes' classification to the eigensolver)
     ke = axial[:, None, None, None] * ee \
-        + transverse[..., None, None] * (np.eye(3) - ee)                  # (ncab, n, 3, 3)
-    k_diag = ke.copy()
-    k_diag[:, :-1] += ke[:, 1:]
+        + transverse[..., None, None] * (_EYE - ee)                       # (ncab, n, 3, 3)
+    k_diag = np.empty_like(ke)                    # D_j = K_j + K_j+1, the last node K_n
+    np.add(ke[:, :-1], ke[:, 1:], out=k_diag[:, :-1])
+    k_diag[:, -1] = ke[:, -1]
     k_off = -ke[:, 1:]
     lumped = cables.mass_per_length_kg_m * l0 / 6.0                      # (ncab,) kg
-    m0 = lumped[:, None, None, None] * np.eye(3)
-    m_diag = np.repeat(4.0 * m0, n, axis=1)
-    m_diag[:, -1] = 2.0 * m0[:, 0]
-    m_off = np.repeat(m0, n - 1, axis=1)
-    rows, cols = zip(*_UPPER)
-    elements = (ee[:, :, rows, cols].transpose(2, 1, 0), axial, transverse.T, lumped)
-    return ChainBlocks(k_diag, k_off, m_diag, m_off), elements, state
+    m_diag = lumped[:, None, None, None] * shapes.mass_diag
+    m_off = lumped[:, None, None, None] * shapes.mass_off
+    return ChainBlocks(k_diag, k_off, m_diag, m_off), (ee, axial, transverse, lumped), state
+
+
+class _ChainShapes(NamedTuple):
+    """What :func:`sag_chains` needs of n alone: the nodes' unstrained arc lengths from the
+    platform end in units of L0, (n - k)/n for node k, (1, n + 1); the midpoints' in units of
+    l0 = L0/n, (n - 1/2 - e) for element e, (1, n); the consistent mass
+    blocks per unit of mu l0/6 over the free nodes, 4 I at the interior nodes and 2 I at the
+    platform end (n, 3, 3), I between neighbours (n - 1, 3, 3). Read-only."""
+
+    fractions: np.ndarray
+    midpoints: np.ndarray
+    mass_diag: np.ndarray
+    mass_off: np.ndarray
+
+
+_EYE = np.eye(3)
+_EYE.flags.writeable = False
+
+
+@functools.lru_cache(maxsize=8)
+def _chain_shapes(n: int) -> _ChainShapes:
+    """:class:`_ChainShapes` of chains of n elements (kept: they depend on n only)."""
+    mass_diag = np.repeat(4.0 * _EYE[None], n, axis=0)
+    mass_diag[-1] = 2.0 * _EYE
+    shapes = _ChainShapes(((n - np.arange(n + 1)) / n)[None, :],
+                          (n - 0.5 - np.arange(n))[None, :], mass_diag,
+                          np.repeat(_EYE[None], n - 1, axis=0))
+    for array in shapes:
+        array.flags.writeable = False
+    return shapes
 
 
 def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
@@ -256,19 +301,22 @@ def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
     n = int(elements_per_cable)
     if n < 1:
         raise ValueError('fem_sag needs at least one element per cable')
-    blocks, elements, state = sag_chains(cables, n)
+    blocks, parts, state = _chains(cables, n)
     warnings = tuple(state.reasons)
     if warnings:
         warnings += ('fem_sag: the cables above are modelled as straight chains at a placeholder '
                      'tension max(T, gamma L, 1e-9 EA); the results are not valid',)
-
-    planar = functools.cache(lambda: planar_chains(elements[0]))   # on the first call
+    series = []           # (planar_chains, element data): on the first call, not per pose
 
     def end_stiffness(lam):
+        if not series:
+            elements = _series_elements(*parts)
+            series.append((planar_chains(elements[0]), elements))
+        planar, elements = series[0]
         lam = np.asarray(lam)
         if np.iscomplexobj(lam) and not np.any(lam.imag):
             lam = lam.real                   # undamped: the real recursion is twice as fast
-        return _series(planar(), *elements, lam).astype(complex, copy=False)
+        return _series(planar, *elements, lam).astype(complex, copy=False)
 
     return CableAssembly('fem_sag', n, end_stiffness, -state.force_n, blocks,
-                         valid=bool(np.all(state.valid)), warnings=warnings)
+                         valid=bool(state.valid.all()), warnings=warnings)
