@@ -355,7 +355,8 @@ def summary(result: dict) -> str:
                      f"{call['longest_gap_ms']:.1f} ms")
         rec = result['recording']
         lines.append(f"cdpr_record beside the node under a 5 kHz wrench flood: "
-                     f"{rec['messages_per_s']:.0f} messages/s recorded, "
+                     f"{rec['topics'].get('/wrench', 0)} of {rec['wrenches_sent']} wrenches "
+                     f"recorded, {rec['messages_per_s']:.0f} messages/s (all topics), "
                      f"{rec['bytes_per_message']:.0f} bytes/message (file)")
         lines.append(_controller_line('controller', result['controller']))
         for mode, ctl in result['controller_heavy_sag'].items():

@@ -368,7 +368,8 @@ def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.
 
     path, sent = _beside_node_and_recorder(
         'record', config, None, ['flood', '--rate', str(rate_hz), '--duration', str(duration_s),
-                                 '--frame', load_settings(config).robot.frame_id],
+                                 '--frame', load_settings(config).robot.frame_id,
+                                 '--subscribers', '2'],       # the node and the recorder
         duration_s + 60)
     info = recording_info(path)
     counts = {name: t.message_count for name, t in info.topics.items()}
@@ -379,8 +380,10 @@ def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.
             'complete': info.complete}
 
 
-def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world') -> dict:
-    """Publish wrenches at ``rate_hz`` for ``duration_s``; stamps start at ``start_s``."""
+def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world',
+          subscribers: int = 1) -> dict:
+    """Publish wrenches at ``rate_hz`` for ``duration_s``; stamps start at ``start_s``, once
+    ``subscribers`` subscriptions (the node, and e.g. a recorder) have matched."""
     import rclpy
     from geometry_msgs.msg import WrenchStamped
     from rclpy.node import Node
@@ -393,10 +396,10 @@ def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world
     node = Node('cdpr_flood')
     pub = node.create_publisher(WrenchStamped, 'wrench', qos_profile_sensor_data)
     deadline = time.monotonic() + 10.0
-    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+    while pub.get_subscription_count() < subscribers and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
-    if pub.get_subscription_count() == 0:
-        raise SystemExit('flood: no subscriber on wrench after 10 s')
+    if pub.get_subscription_count() < subscribers:
+        raise SystemExit(f'flood: fewer than {subscribers} subscribers on wrench after 10 s')
     msg = wrench_message([0.0, 0.0, 0.0], frame_id=frame)
     period = 1.0 / rate_hz
     total = int(round(rate_hz * duration_s))
@@ -645,6 +648,7 @@ def main(argv=None) -> int:
     fl.add_argument('--duration', type=float, default=10.0)
     fl.add_argument('--start-s', type=float, default=1000.0)
     fl.add_argument('--frame', default='world')
+    fl.add_argument('--subscribers', type=int, default=1)
     co = sub.add_parser('controller', help='publish wrenches and moving poses at rates')
     co.add_argument('--config', required=True)
     co.add_argument('--wrench-hz', type=float, default=1000.0)
@@ -660,7 +664,8 @@ def main(argv=None) -> int:
         print(json.dumps(controller(args.config, args.wrench_hz, args.pose_hz, args.duration,
                                     args.subscribers)))
         return 0
-    print(json.dumps(flood(args.rate, args.duration, args.start_s, args.frame)))
+    print(json.dumps(flood(args.rate, args.duration, args.start_s, args.frame,
+                           args.subscribers)))
     return 0
 
 
