@@ -85,7 +85,7 @@ from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse
 
 # --------------------------------------------------------------------------- closed forms
 
-_all, _any = np.logical_and.reduce, np.logical_or.reduce    # ndarray.all/any without wrappers
+_all = np.logical_and.reduce            # ndarray.all without its wrapper (on arrays)
 
 
 def _every(flags) -> bool:
