@@ -33,7 +33,7 @@ from math import comb
 
 import numpy as np
 
-from cdpr_dynamics.robot import cross, singular_values
+from cdpr_dynamics.robot import cross, row_norm, singular_values
 
 #: more facet normals than this: keep this many (random subsets) as an outer bound, decide the
 #: rest with the inner test and an LP (many cables on a 6-DOF platform).
@@ -127,7 +127,7 @@ def _pair_cross_index(n: int) -> np.ndarray:
 def _unit_rows(normals: np.ndarray) -> np.ndarray:
     """The rows of ``normals`` (k, d) scaled to unit length; rows of length below 1e-9 of the
     longest (and of 1) dropped: degenerate subsets span no hyperplane."""
-    norm = np.sqrt(np.add.reduce(normals * normals, axis=1))       # as np.linalg.norm
+    norm = row_norm(normals)
     keep = norm > 1e-9 * max(1.0, float(norm.max(initial=0.0)))
     if keep.all():
         return normals / norm[:, None]

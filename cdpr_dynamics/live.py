@@ -31,7 +31,7 @@ from cdpr_dynamics.dynamics import ChainNewmark, DynamicsError, Newmark, Platfor
 from cdpr_dynamics.feasibility import WrenchSet
 from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.robot import (matrix_to_quaternion, quaternion_product, quaternion_to_matrix,
-                                 required_wrench, rotation_vector_quaternion)
+                                 required_wrench, rotation_vector_quaternion, row_norm)
 from cdpr_dynamics.selection import choose_model
 from cdpr_dynamics.statics import structure_of
 
@@ -470,5 +470,5 @@ def _tangent_structure(eq: Equilibrium) -> np.ndarray:
     """W^T of the forces along each cable's end direction at ``eq`` (the chord for chord
     statics, the catenary's end tangent for sagged cables): wrench per unit tension."""
     force = eq.end_force_n
-    unit = force / np.sqrt(np.add.reduce(force * force, axis=1))[:, None]   # as norm(axis=1)
+    unit = force / row_norm(force)[:, None]
     return structure_of(unit, eq.geometry.lever_m, eq.geometry.structure_matrix.shape[0])

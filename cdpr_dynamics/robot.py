@@ -87,6 +87,12 @@ def quaternion_product(p, q) -> np.ndarray:
                      pw * qw - px * qx - py * qy - pz * qz])
 
 
+def row_norm(x: np.ndarray) -> np.ndarray:
+    """|x| along the last axis: ``np.linalg.norm(x, axis=-1)``'s arithmetic (the same
+    numbers) without its argument handling, half the cost on a few rows."""
+    return np.sqrt(np.add.reduce(x * x, axis=-1))
+
+
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cross products of stacked 3-vectors (..., 3) x (..., 3): numpy's formula (bit for bit
     the same numbers as ``np.cross``) without its argument handling, ~10x cheaper on small
@@ -209,7 +215,7 @@ def geometry(robot: Robot, position_m, rotation=None, *, check_frame: bool = Tru
     else:
         lever = robot.attachments_m @ rot.T
         chord = robot.anchors_m - (p + lever)
-    length = np.sqrt(np.add.reduce(chord * chord, axis=1))
+    length = row_norm(chord)
     if length.min() < 1e-6:
         i = int(np.argmin(length))
         raise GeometryError(f'cable {i} has zero length: attachment on its anchor')

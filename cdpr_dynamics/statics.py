@@ -46,7 +46,7 @@ import numpy as np
 from cdpr_dynamics.config import Settings
 from cdpr_dynamics.models import catenary
 from cdpr_dynamics.models.base import CableSet
-from cdpr_dynamics.robot import WRENCH_AXES, Geometry, cross, required_wrench
+from cdpr_dynamics.robot import WRENCH_AXES, Geometry, cross, required_wrench, row_norm
 from cdpr_dynamics.tensions import TensionResult, TensionSolver
 
 #: Methods linearised about the sag-consistent state; the others use the chord statics.
@@ -188,7 +188,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
 
     force = wrench[:3]              # |f| and max |r_i| as np.linalg.norm computes them
     force_scale = max(math.sqrt(force.dot(force)), 1e-9 * float(t_max_n))
-    arm = max(float(_max(np.sqrt(_sum(lever * lever, axis=1)), initial=0.0)), 1e-3)
+    arm = max(float(_max(row_norm(lever), initial=0.0)), 1e-3)
     tol = rtol * force_scale * np.where(np.arange(ndof) < 3, 1.0, arm)
     step_tol = OPTIMALITY_RTOL * float(t_max_n)
     qp = None if start is None else start.step_qp        # the previous pose's, if it fits

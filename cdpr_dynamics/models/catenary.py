@@ -81,6 +81,7 @@ import numpy as np
 
 from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse,
                                        massless_assembly)
+from cdpr_dynamics.robot import row_norm
 
 
 # --------------------------------------------------------------------------- closed forms
@@ -226,7 +227,7 @@ def sag_parameter(cables: CableSet) -> np.ndarray:
     length = cables.length_m
     chord = np.asarray(cables.chord_m, dtype=float)
     horizontal = chord - (chord @ up)[:, None] * up
-    cos_theta = np.sqrt(np.add.reduce(horizontal * horizontal, axis=1)) / length  # as norm()
+    cos_theta = row_norm(horizontal) / length
     t = np.asarray(cables.tension_n, dtype=float)
     with np.errstate(divide='ignore', invalid='ignore'):
         ratio = gamma * length * cos_theta / t
@@ -286,10 +287,10 @@ def _planes(cables: CableSet) -> _Planes:
 
 def _make_planes(cables: CableSet, chord: np.ndarray) -> _Planes:
     up, gamma = up_and_weight(cables)
-    length = _row_norm(chord)
+    length = row_norm(chord)
     span_v = -(chord @ up)
     horizontal = -chord - span_v[:, None] * up
-    span_h = _row_norm(horizontal)
+    span_h = row_norm(horizontal)
     level = span_h > 1e-12 * length         # else a vertical chord: any horizontal h will do
     if _every(level):
         horizontal = horizontal / span_h[:, None]
@@ -356,12 +357,6 @@ class CatenaryState(NamedTuple):
     iterations: int
     valid: np.ndarray
     reasons: tuple[str, ...]
-
-
-def _row_norm(x: np.ndarray) -> np.ndarray:
-    """|x| along the last axis: numpy's norm (the same operations, the same numbers) without
-    its argument handling, half the cost on a few cables."""
-    return np.sqrt(np.add.reduce(x * x, axis=-1))
 
 
 def _residual(x, planes: _Planes, t_inv, scale):
