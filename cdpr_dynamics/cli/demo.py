@@ -147,6 +147,14 @@ class Controller:
 # ---------------------------------------------------------------------------- listening
 
 
+def arrival_s(info: dict) -> float:
+    """When DDS received a message taken with ``take_message`` (its ``received_timestamp``,
+    wall clock ns, as the stamps), in s; now where the RMW gives none. A poll takes messages up
+    to :data:`POLL_S` after they arrived: this, not the poll, is the time a latency ends."""
+    stamp_ns = info.get('received_timestamp') or 0
+    return stamp_ns * 1e-9 if stamp_ns > 0 else time.time()
+
+
 class Listener:
     """Predictions, predicted poses, tensions and diagnostics of the node (predictions keyed
     by stamp, ns).
@@ -195,33 +203,33 @@ class Listener:
                     break
                 if taken is None:
                     break
-                handler(taken[0])
+                handler(*taken)
 
     def unmatched(self) -> list[str]:
         """The node's outputs this process does not see a publisher of yet."""
         return [name for name, sub in self.subscriptions.items()
                 if sub.get_publisher_count() == 0]
 
-    def _on_prediction(self, msg):
-        now = time.time()
+    def _on_prediction(self, msg, info):
+        now = arrival_s(info)
         v, s = msg.vector, msg.header.stamp
         with self.cond:
             self.predictions[s.sec * 1_000_000_000 + s.nanosec] = (now, v.x, v.y, v.z)
             self.cond.notify_all()
 
-    def _on_pose(self, msg):
+    def _on_pose(self, msg, _info):
         p, q, s = msg.pose.position, msg.pose.orientation, msg.header.stamp
         with self.cond:
             self.poses[s.sec * 1_000_000_000 + s.nanosec] = (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
             self.cond.notify_all()
 
-    def _on_tensions(self, msg):
+    def _on_tensions(self, msg, _info):
         with self.cond:
             self.tensions.append([msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9]
                                  + list(msg.effort))
             self.cond.notify_all()
 
-    def _on_diagnostics(self, msg):
+    def _on_diagnostics(self, msg, _info):
         from msg_adapters.diagnostics import read_statuses
         statuses = read_statuses(msg)
         if not any(name.endswith(': wrench input') for name in statuses):
