@@ -68,6 +68,10 @@ from cdpr_dynamics.dynamics import DENSE_EIGEN_DOFS, DynamicsError, PlatformSyst
 PLATFORM_SHARE = 0.5    # platform energy fraction at or above: kind 'platform'
 CABLE_SHARE = 0.1       # platform energy fraction at or below: kind 'cable'
 MIN_MODES = 12          # at least this many modes (SPEC section 6: "at least the 12 lowest")
+#: relative width (of omega) within which counted frequencies and clamped-chain eigenvalues
+#: are one repeated frequency: the pivots' round-off splits equal chains' eigenvalues by
+#: 2-3e-11 at fem_sag n = 64 (four symmetric cables), so 30x that
+CLUSTER = 1e-9
 
 
 @dataclass(frozen=True, eq=False)
@@ -181,6 +185,13 @@ class _Classifier:
         omega, mult, lo, hi, take, jumps = self.counter.frequencies(f_max_hz, count, tol_hz)
         if omega.size and omega[0] == 0.0 and lo[0] == hi[0]:
             return None                                 # negative stiffness: dense
+        omega, mult, jumps = _merged(omega, mult, lo, hi, jumps,
+                                     np.maximum(2.0 * math.pi * tol_hz, CLUSTER * omega))
+        poles = np.any(jumps > 0, axis=1)
+        if np.any(poles):       # every chain with an eigenvalue within CLUSTER, J rising or not
+            lam = omega[poles] ** 2
+            jumps[poles] = self.interior.counts(lam * (1.0 + 2.0 * CLUSTER)) \
+                - self.interior.counts(lam * (1.0 - 2.0 * CLUSTER))
         lam = omega * omega
         nd = self.nd
         parts = []
@@ -293,6 +304,22 @@ class _Classifier:
             effective = (masses[rows].T @ null).T ** 2
             parts.append((np.full(mult[k], group), np.zeros(mult[k]), effective, energy))
         return parts
+
+
+def _merged(omega, mult, lo, hi, jumps, tol):
+    """Counted frequencies whose brackets lie within ``tol`` (rad/s, per frequency) of the
+    previous one's as one repeated frequency: (omega (g,), multiplicity, jumps (g, ncab)),
+    omega the multiplicity-weighted mean. Round-off in the pivots' signs can split an exactly
+    repeated frequency (four symmetric cables' equal clamped eigenvalues at fem_sag n = 64,
+    4e-10 Hz apart) into neighbouring brackets; its modes are the eigenspace of the whole
+    group (a part of it alone has no platform-at-rest combination, or shares a null vector)."""
+    if omega.size < 2:
+        return omega, mult, jumps
+    group = np.cumsum(np.concatenate([[True], lo[1:] - hi[:-1] > tol[1:]])) - 1
+    size = np.bincount(group, weights=mult)
+    summed = np.zeros((group[-1] + 1, jumps.shape[1]), dtype=jumps.dtype)
+    np.add.at(summed, group, jumps)
+    return np.bincount(group, weights=mult * omega) / size, size.astype(int), summed
 
 
 def _generalized_eigh(a: np.ndarray, b: np.ndarray):
