@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from functools import cached_property, lru_cache
 from itertools import combinations
-from math import comb
+from math import comb, inf
 
 import numpy as np
 
@@ -221,6 +221,39 @@ class WrenchSet:
             return ''
         return (f'wrench outside the feasible set: the cables would need {_fmt(w)} with '
                 f'tensions in [{self.t_min_n:g}, {self.t_max_n:g}] N (linear program)')
+
+    def symmetric_limit(self, force_n, moment_nm=(0.0, 0.0, 0.0)) -> float:
+        """The largest s >= 0 with both +s f and -s f feasible (f = (force, moment), the
+        amplitude of a harmonic load as a multiple of f); 0 where even f = 0 is not, inf where
+        no facet bounds f. With all facet normals, closed form: facet k holds +-s f while
+        |c_k| + s |n_k . f| <= reach_k, c_k = n_k . required - offset_k, so s is the least
+        (reach_k - |c_k|) / |n_k . f|. Otherwise that bound over the sampled normals (an outer
+        one) and bisection of :meth:`reason` below it, to 1e-9 of it."""
+        f = self.required - self._needed(force_n, moment_nm)      # the external wrench
+        c = self.normals @ self.required - self.offset
+        a = np.abs(self.normals @ f)
+        room = self.reach - np.abs(c)
+        if room.min() < 0.0:
+            return 0.0
+        bounded = a > 1e-12 * max(float(np.abs(f).max(initial=0.0)), 1.0) * \
+            np.abs(self.normals).sum(axis=1)
+        if not np.any(bounded):
+            return inf
+        upper = float(np.min(room[bounded] / a[bounded]))
+        if self.exact:
+            return upper
+        force, moment = np.asarray(force_n, float), np.asarray(moment_nm, float)
+
+        def holds(scale):
+            return all(self.reason(sign * scale * force, sign * scale * moment) == ''
+                       for sign in (1.0, -1.0))
+        lo, hi = 0.0, upper
+        if holds(hi):
+            return hi
+        while hi - lo > 1e-9 * upper:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if holds(mid) else (lo, mid)
+        return lo
 
     @cached_property
     def _inside_test(self) -> tuple[np.ndarray, np.ndarray]:

@@ -240,6 +240,33 @@ def test_the_demo_starts_after_the_match_and_reports_what_its_recording_holds(
     assert png.stat().st_size > 20000 and f'wrote {png.resolve()}' in out
 
 
+RIGID = Path(__file__).parent / 'data' / 'rigid_cdpr.yaml'
+
+
+def test_an_infeasible_load_is_answered_with_an_amplitude_the_node_then_accepts(
+        ros_env, tmp_path):
+    """The rigid 6-DOF robot's frf.force_n (1500 N along z) exceeds what its cables hold
+    (about 300 N): the demo says how much they hold and suggests --amplitude-n; a run with
+    it has no infeasible wrench."""
+    def run(*extra):
+        done = subprocess.run([installed('cdpr_demo'), '--config', str(RIGID), '--duration',
+                               '1', '--no-record', '--output', str(tmp_path / 'rigid.png'),
+                               '--json', str(tmp_path / 'rigid.json'), *extra], env=ros_env,
+                              capture_output=True, text=True, timeout=180)
+        assert done.returncode == 0, done.stderr[-3000:]
+        return done.stdout, json.loads((tmp_path / 'rigid.json').read_text())
+    out, result = run()
+    assert result['node_wrenches_rejected'] > 0
+    hint = re.search(r'the cables hold up to ([\d.]+) N along this load .* e\.g\. '
+                     r'--amplitude-n ([\d.]+)', out)
+    assert hint, out
+    assert float(hint[1]) == pytest.approx(result['amplitude_limit_n'], rel=1e-3)
+    assert 0.9 * float(hint[1]) <= float(hint[2]) < float(hint[1]) < 1500.0
+    out, result = run('--amplitude-n', hint[2])
+    assert result['node_wrenches_rejected'] == 0 and 'amplitude_limit_n' not in result, out
+    assert 'the cables hold up to' not in out
+
+
 def test_arrival_is_the_rmw_receive_time_and_now_without_one(monkeypatch):
     """The Listener polls every POLL_S: a prediction's latency ends when DDS received it
     (take_message's received_timestamp, ns), not when the poll took it."""

@@ -173,3 +173,33 @@ def test_wrench_set_never_rejects_what_an_lp_finds_feasible(name):
                                              - w) / max(1.0, np.linalg.norm(w))
                 assert _lp_feasible(wt, shrunk, t_min - 1e-6 * t_max, t_max + 1e-6 * t_max), w
     assert counts['feasible'] > 60 and counts['infeasible'] > 30, counts
+
+
+@pytest.mark.parametrize('name', list(ROBOTS))
+def test_symmetric_limit_is_where_an_lp_stops_holding_the_load(name):
+    """WrenchSet.symmetric_limit s of a load f (cdpr_demo's amplitude hint): an LP (HiGHS)
+    holds +-0.999 s f and not both of +-1.001 s f, at two poses and three directions; the
+    closed form (all facets) and the bisection (sampled normals) alike; 0 where the state
+    itself cannot be held, inf for no load."""
+    settings = ROBOTS[name]()
+    robot = settings.robot
+    t_min, t_max = settings.tension_min_n, settings.tension_max_n
+    rng = np.random.default_rng(5)
+    d = robot.platform_dofs
+    for _ in range(2):
+        p = settings.initial_position_m + rng.uniform(-0.15, 0.15, 3)
+        wt = geometry(robot, p).structure_matrix
+        need = wt @ rng.uniform(t_min, t_max, wt.shape[1])   # held at rest (not every
+        wset = WrenchSet(wt, t_min, t_max, need)             # test robot holds its weight)
+        for _ in range(3):
+            load = np.zeros(6)
+            load[:d] = rng.normal(size=d) * np.array([100.0] * 3 + [10.0] * 3)[:d]
+            s = wset.symmetric_limit(load[:3], load[3:])
+            assert 0.0 < s < np.inf
+            assert all(_lp_feasible(wt, need - sign * 0.999 * s * load[:d], t_min, t_max)
+                       for sign in (1.0, -1.0))
+            assert not all(_lp_feasible(wt, need - sign * 1.001 * s * load[:d], t_min, t_max)
+                           for sign in (1.0, -1.0))
+    assert wset.symmetric_limit(np.zeros(3), np.zeros(3)) == np.inf     # no load: no limit
+    lifted = WrenchSet(wt, t_min, t_max, need * 1e3)      # the pose itself cannot be held
+    assert lifted.symmetric_limit([0.0, 0.0, 1.0]) == 0.0

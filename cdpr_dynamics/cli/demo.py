@@ -67,6 +67,12 @@ RECORDER_ADVICE = 'use --force to replace it'
 POLL_S = 0.02
 
 
+def _round_down(value: float) -> float:
+    """``value`` > 0 rounded down to two significant digits."""
+    step = 10.0 ** (math.floor(math.log10(value)) - 1)
+    return math.floor(value / step) * step
+
+
 def _environment():
     """Domain, discovery range and log folder: the user's, or isolated ones."""
     from cdpr_dynamics.node_process import ament_prefix, reserve_domain_id
@@ -485,6 +491,13 @@ def run(args) -> dict:
             f'matched by stamp): {100 * result["prediction_ratio"]:.2f} %',
             input_sentence('wrenches', sent['wrenches'], wrench_status),
             input_sentence('poses', sent['poses'], pose_status)]
+        if status_count(wrench_status, 'rejected_infeasible'):
+            limit = plan.amplitude_limit_n(settings)
+            result['amplitude_limit_n'] = limit
+            if limit:
+                lines.append(f'wrenches: the cables hold up to {limit:.4g} N along this load '
+                             '(both signs, tensions in the box) at 16 poses of the circle: '
+                             f'e.g. --amplitude-n {_round_down(0.98 * limit):g}')
         if isinstance(tensions, TensionEstimate):
             low, cable, _ = tensions.lowest
             result.update(lowest_tension_n=low, lowest_tension_cable=cable,

@@ -102,6 +102,28 @@ class Trajectory:
         r = self.args.radius
         return self.centre + r * np.array([np.cos(omega * t) - 1.0, np.sin(omega * t), 0.0])
 
+    def amplitude_limit_n(self, settings, poses: int = 16) -> float:
+        """The largest |F0| (N) along the load's direction (its moment scaled with it) that
+        the node's wrench set (:func:`~cdpr_dynamics.live.wrench_set_at`, the tension box)
+        holds with both signs at ``poses`` points of the circle: the least
+        :meth:`~cdpr_dynamics.feasibility.WrenchSet.symmetric_limit` over them; 0 where a
+        pose itself has no feasible tensions, None for a load without force."""
+        from cdpr_dynamics.analysis import AnalysisError, equilibrium
+        from cdpr_dynamics.live import wrench_set_at
+        amplitude = self.load.amplitude_n
+        if amplitude == 0.0:
+            return None
+        limits = []
+        for t in np.linspace(0.0, self.args.duration, poses, endpoint=False):
+            try:
+                eq = equilibrium(settings, self.position(t), settings.initial_rotation,
+                                 method=settings.method)
+            except AnalysisError:
+                return 0.0
+            limits.append(wrench_set_at(settings, eq).symmetric_limit(self.load.force_n,
+                                                                      self.load.moment_nm))
+        return amplitude * min(limits)
+
 
 def period_ns(rate_hz: float) -> int:
     """The controller's message period (integer ns)."""
