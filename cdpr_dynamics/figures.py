@@ -157,6 +157,10 @@ def percent_text(value: float) -> str:
     return f'{value:.2g} %' if value >= 0.01 else f'{value:.1e} %'
 
 
+LABEL_CHAR_PT = 4.2     # width of a character of the 7-point mode labels (pt, a bound)
+LABEL_ROW_PT = 9.0      # the next row of labels, where one would overlap its neighbour (pt)
+
+
 def mark_modes(ax, modes: list[dict], f_min_hz: float = 0.0, f_max_hz: float = np.inf,
                suffix: str = '', annotate_platform: bool = True) -> dict:
     """A vertical line per mode (dicts with ``frequency_hz`` and ``kind``, as the JSON's
@@ -176,10 +180,18 @@ def mark_modes(ax, modes: list[dict], f_min_hz: float = 0.0, f_max_hz: float = n
     if annotate_platform and drawn.get('platform'):
         top = f_max_hz if np.isfinite(f_max_hz) else max(drawn['platform'])
         lo, hi = np.log(max(f_min_hz, 1e-3 * top)), np.log(top)
+        width_pt = ax.get_window_extent().width * 72.0 / ax.figure.dpi
+        rows: list[float] = []           # per row of labels, the right end of its last (pt)
         for f, count in _clusters(drawn['platform']):
-            right = np.log(f) > lo + 0.85 * (hi - lo)
-            ax.annotate(f'{f:.1f} Hz' + (f' (x{count})' if count > 1 else ''), (f, 1.0),
-                        xycoords=('data', 'axes fraction'), xytext=(-3 if right else 3, -3),
+            text = f'{f:.1f} Hz' + (f' (x{count})' if count > 1 else '')
+            at = (np.log(f) - lo) / (hi - lo) * width_pt
+            right = at > 0.85 * width_pt
+            span = LABEL_CHAR_PT * len(text)
+            start = at - 3 - span if right else at + 3
+            row = next((i for i, end in enumerate(rows) if start > end + 2), len(rows))
+            rows[row:row + 1] = [start + span]           # a label that would overlap: a row down
+            ax.annotate(text, (f, 1.0), xycoords=('data', 'axes fraction'),
+                        xytext=(-3 if right else 3, -3 - LABEL_ROW_PT * row),
                         textcoords='offset points', ha='right' if right else 'left',
                         va='top', fontsize=7, color=MODE_STYLES['platform']['color'],
                         bbox=dict(facecolor='white', edgecolor='none', alpha=0.8, pad=0.5))

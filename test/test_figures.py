@@ -276,3 +276,27 @@ def test_tradeoff_labels_do_not_overlap_and_the_legend_names_the_families(tmp_pa
         assert {'spring', 'fem (straight)', 'catenary', 'catenary_exact', 'fem_sag', 'dsm',
                 'Pareto front', 'auto at 1 %'} <= legend
     assert png_size(tmp_path / 't.png')[0] > 1000
+
+
+def test_platform_mode_labels_do_not_overlap():
+    """Platform modes close on the log axis (the rigid robot's 18.2 and 26.4 Hz were drawn
+    over each other) are labelled in rows; coincident ones once, with the multiplicity."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    freqs = [1.5, 18.2, 26.4, 27.0, 27.0, 31.0, 34.5, 38.0, 39.5]
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.set_xscale('log')
+    ax.set_xlim(1.0, 40.0)
+    figures.mark_modes(ax, [{'frequency_hz': f, 'kind': 'platform'} for f in freqs],
+                       1.0, 40.0)
+    renderer = fig.canvas.get_renderer()
+    notes = [t for t in ax.texts if isinstance(t, Annotation)]
+    assert sorted(n.get_text() for n in notes) == sorted(
+        ['1.5 Hz', '18.2 Hz', '26.4 Hz', '27.0 Hz (x2)', '31.0 Hz', '34.5 Hz', '38.0 Hz',
+         '39.5 Hz'])
+    boxes = [n.get_window_extent(renderer) for n in notes]
+    for i in range(len(boxes)):
+        for j in range(i):
+            assert not boxes[i].overlaps(boxes[j]), (notes[i].get_text(), notes[j].get_text())
+    plt.close(fig)
