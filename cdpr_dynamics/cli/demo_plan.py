@@ -102,7 +102,7 @@ class Trajectory:
         r = self.args.radius
         return self.centre + r * np.array([np.cos(omega * t) - 1.0, np.sin(omega * t), 0.0])
 
-    def amplitude_limit_n(self, settings, poses: int = 16) -> float:
+    def amplitude_limit_n(self, settings, poses: int = 16) -> float | None:
         """The largest |F0| (N) along the load's direction (its moment scaled with it) that
         the node's wrench set (:func:`~cdpr_dynamics.live.wrench_set_at`, the tension box)
         holds with both signs at ``poses`` points of the circle: the least
