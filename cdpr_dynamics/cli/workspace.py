@@ -292,11 +292,7 @@ def run_tasks(tasks, on_chunk, *, scheduler: str | None = None, workers: int | N
             by_key[future.key] = (future, task)
         for future in as_completed([f for f, _ in by_key.values()]):
             task = by_key.pop(future.key)[1]
-            if future.status == 'finished':
-                columns = future.result()
-            else:
-                columns = failed_columns(task, f'the engine gave up on this chunk after '
-                                         f'{retries} retries: {_one_line(future.exception())}')
+            columns = chunk_result(future, task, retries)
             future.release()
             on_chunk(task, columns)
     finally:
@@ -304,6 +300,20 @@ def run_tasks(tasks, on_chunk, *, scheduler: str | None = None, workers: int | N
             client.close(timeout=10)
         if cluster is not None:
             cluster.close(timeout=10)
+
+
+def chunk_result(future, task, retries: int) -> dict:
+    """The columns of a finished chunk's Dask future, or :func:`failed_columns` with the
+    reason. A result lost with its worker after ``as_completed`` saw it finish is 'lost', not
+    failed: ``result()`` waits while the scheduler computes it again elsewhere (its status,
+    read at that moment, said neither 'finished' nor 'error', and 3 poses were reported failed
+    with 'NoneType: None')."""
+    try:
+        return future.result()
+    except Exception as exc:  # noqa: BLE001 - the task's own error after its retries, or the
+        # engine's (KilledWorker, CancelledError)
+        return failed_columns(task, f'the engine gave up on this chunk after {retries} '
+                              f'retries: {_one_line(exc)}')
 
 
 def default_workers() -> int:
