@@ -120,6 +120,16 @@ def serial(tmp_path_factory) -> dict:
     return table_rows(out / 'workspace.parquet')
 
 
+@pytest.fixture(scope='module')
+def slow_serial(tmp_path_factory) -> dict:
+    """SLOW_GRID computed in this process's CLI with --workers 0: the reference of the tests
+    that interrupt or kill a run (its chunks take long enough for that to land mid-run)."""
+    out = tmp_path_factory.mktemp('slow_serial') / 'run'
+    done = workspace(*SLOW_GRID, '--output', out, '--workers', '0', '--no-maps')
+    assert done.returncode == 0, done.stderr
+    return table_rows(out / 'workspace.parquet')
+
+
 # --------------------------------------------------------------------------- rows
 
 POSES = [(0.0, 0.0, 1.25), (0.5, -0.3, 0.8), (-0.9, 0.6, 1.9)]
@@ -330,7 +340,7 @@ def _worker(processes, address, log) -> subprocess.Popen:
                            stdout=subprocess.DEVNULL, stderr=open(log, 'w'))
 
 
-def test_existing_cluster_with_a_worker_killed_mid_run(tmp_path, processes, serial):
+def test_existing_cluster_with_a_worker_killed_mid_run(tmp_path, processes, slow_serial):
     """`dask scheduler` and two `dask worker` processes as a user's cluster would be; one
     worker is killed outright once chunks come back: its chunks are rerun elsewhere and
     every pose ends up exactly once, equal to the serial run."""
@@ -338,15 +348,15 @@ def test_existing_cluster_with_a_worker_killed_mid_run(tmp_path, processes, seri
     first = _worker(processes, address, tmp_path / 'w1.log')
     _worker(processes, address, tmp_path / 'w2.log')
     out = tmp_path / 'remote'
-    client = processes.start([installed('cdpr_workspace'), *GRID, '--output', out, '--scheduler',
-                              address], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             text=True)
+    client = processes.start([installed('cdpr_workspace'), *SLOW_GRID, '--output', out,
+                              '--scheduler', address], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
     wait_until(lambda: glob.glob(str(out / 'chunks' / '*.parquet')) or client.poll()
                is not None, 180, 'the first chunk')
     processes.kill(first)
     stdout, stderr = client.communicate(timeout=240)
     assert client.returncode == 0, stderr
-    assert table_rows(out / 'workspace.parquet') == serial
+    assert_rows_close(table_rows(out / 'workspace.parquet'), slow_serial)
     assert '27 poses: ' in stdout
 
 
@@ -375,7 +385,7 @@ def test_a_result_lost_with_its_worker_is_computed_again_not_failed(tmp_path):
     assert 'failed' not in columns['status']
 
 
-def test_interrupt_kill_then_resume_computes_each_pose_once(tmp_path, processes):
+def test_interrupt_kill_then_resume_computes_each_pose_once(tmp_path, processes, slow_serial):
     """Ctrl-C (SIGINT to the process group), then a resumed run whose client is killed
     outright (its LocalCluster workers go with it), then --resume to the end. On SLOW_GRID:
     on GRID a fast host finished all 9 chunks before the Ctrl-C of the first one arrived."""
@@ -405,11 +415,8 @@ def test_interrupt_kill_then_resume_computes_each_pose_once(tmp_path, processes)
     assert len(after) == 9
     assert all(os.stat(p).st_mtime_ns == t for p, t in kept.items())   # not recomputed
     rows = table_rows(out / 'workspace.parquet')
-    reference = tmp_path / 'serial'
-    assert workspace(*SLOW_GRID, '--output', reference, '--workers', '0',
-                     '--no-maps').returncode == 0
     assert rows['pose_id'] == list(range(27))
-    assert_rows_close(rows, table_rows(reference / 'workspace.parquet'))
+    assert_rows_close(rows, slow_serial)
     print(f'resume: {len(kept)} of 9 chunks kept over an interruption and a killed client, '
           f'{9 - len(kept)} computed by the last --resume')
 
