@@ -189,7 +189,10 @@ def mark_modes(ax, modes: list[dict], f_min_hz: float = 0.0, f_max_hz: float = n
             span = LABEL_CHAR_PT * len(text)
             start = at - 3 - span if right else at + 3
             row = next((i for i, end in enumerate(rows) if start > end + 2), len(rows))
-            rows[row:row + 1] = [start + span]           # a label that would overlap: a row down
+            if row == len(rows):                         # it would overlap every row: a new one
+                rows.append(start + span)
+            else:
+                rows[row] = start + span
             ax.annotate(text, (f, 1.0), xycoords=('data', 'axes fraction'),
                         xytext=(-3 if right else 3, -3 - LABEL_ROW_PT * row),
                         textcoords='offset points', ha='right' if right else 'left',
