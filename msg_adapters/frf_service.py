@@ -26,7 +26,7 @@ import numpy as np
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters
 
-from cdpr_dynamics.analysis import FRF_ARRAYS, MODE_ARRAYS, ROTATION_ARRAYS
+from cdpr_dynamics.analysis.pipeline import FRF_ARRAYS, MODE_ARRAYS, ROTATION_ARRAYS
 from msg_adapters.validation import clip
 
 SERVICE = 'frequency_response'

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from cdpr_dynamics.analysis import AnalysisError
-from cdpr_dynamics.config import ConfigError
-from cdpr_dynamics.dynamics import DynamicsError
-from cdpr_dynamics.live import LivePredictor, PoseUpdate
+from cdpr_dynamics.analysis.pipeline import AnalysisError
+from cdpr_dynamics.analysis.config import ConfigError
+from cdpr_dynamics.dynamics.system import DynamicsError
+from cdpr_dynamics.analysis.live import LivePredictor, PoseUpdate
 from msg_adapters.pose import read_pose
 from msg_adapters.stamps import StampClock, StampPolicy
 from msg_adapters.validation import InvalidMessage, clip

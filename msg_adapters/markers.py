@@ -43,11 +43,12 @@ class RobotShape:
 
 def robot_shape(eq, samples: int = 33) -> RobotShape:
     """The :class:`RobotShape` of an equilibrium: cables along
-    :func:`cdpr_dynamics.analysis.cable_shapes` (the catenary of a sag equilibrium, the chord
+    :func:`cdpr_dynamics.analysis.pipeline.cable_shapes` (the catenary of a sag equilibrium, the
+    chord
     otherwise) shifted by the attachments p + R b_i; the box spans the attachments' extent
     max_i b_i - min_i b_i (platform frame; ``THIN_PLATFORM_M`` where that is 0)."""
-    from cdpr_dynamics.analysis import cable_shapes
-    from cdpr_dynamics.live import rotated_quaternion
+    from cdpr_dynamics.analysis.pipeline import cable_shapes
+    from cdpr_dynamics.analysis.live import rotated_quaternion
     geo = eq.geometry
     attachment = geo.position_m + geo.lever_m
     points = cable_shapes(eq, samples) + attachment[:, None, :]
@@ -145,7 +146,7 @@ def equilibrium_markers(settings, eq, displacement_m=(0.0, 0.0, 0.0), scale: flo
 
 def _box_edges(m: Marker) -> np.ndarray:
     """(12, 2, 3) world-frame edges of a CUBE marker (its pose and scale)."""
-    from cdpr_dynamics.robot import quaternion_to_matrix
+    from cdpr_dynamics.mechanics.robot import quaternion_to_matrix
     o, p = m.pose.orientation, m.pose.position
     rotation = quaternion_to_matrix((o.x, o.y, o.z, o.w))
     half = np.array([m.scale.x, m.scale.y, m.scale.z]) / 2

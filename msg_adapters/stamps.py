@@ -34,7 +34,8 @@ class StampPolicy:
 
     @classmethod
     def from_options(cls, options: dict) -> 'StampPolicy':
-        """From validated ``node.*`` values (:func:`cdpr_dynamics.config.node_options`)."""
+        """From validated ``node.*`` values
+        (:func:`cdpr_dynamics.analysis.config.node_options`)."""
         return cls(options['node.max_stamp_ahead_s'], options['node.clock_jump_back_s'],
                    options['node.zero_stamp'])
 

@@ -21,7 +21,7 @@ python=${PYTHON:-python3}
 # script from lib/cdpr_dynamics, config from share/, with and without AMENT_PREFIX_PATH), and
 # dynamics_node as installed, over DDS (the rigid-platform inputs, the log of its warnings).
 TESTS=${CDPR_COLCON_TESTS:-"test/test_package.py test/test_flake8.py test/test_pep257.py
-  test/test_analyze.py test/test_node_dds.py::test_rigid_platform_inputs
+  test/test_cli_analyze.py test/test_node_dds.py::test_rigid_platform_inputs
   test/test_node_dds.py::test_model_warnings_reach_the_log"}
 
 ws=$(mktemp -d "${TMPDIR:-/tmp}/cdpr_colcon_ws.XXXXXX")
@@ -174,7 +174,7 @@ grep -h '^cable_tensions\|^dynamics_node exited' "$ws/logs/dynamics_node.log" |
 analyze_check() {
   cd "$ws/run"
   local found
-  found=$(python -c 'from cdpr_dynamics.config import default_config_path as p; print(p())')
+  found=$(python -c 'from cdpr_dynamics.analysis.config import default_config_path as p; print(p())')
   echo "default config: $found"
   case "$found" in
     "$prefix/share/cdpr_dynamics/config/"*) ;;

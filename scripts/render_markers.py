@@ -15,9 +15,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-from cdpr_dynamics.analysis import AnalysisError
-from cdpr_dynamics.config import ConfigError, load_settings
-from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.analysis.pipeline import AnalysisError
+from cdpr_dynamics.analysis.config import ConfigError, load_settings
+from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.recording.base import RecordingError
 from cdpr_dynamics.recording.reader import read_messages
 from cdpr_dynamics.recording.writer import RecordingWriter

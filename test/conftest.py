@@ -98,7 +98,7 @@ def installed(name: str) -> str:
     """Path of this package's installed console script ``name``, however it is installed: in
     ``<prefix>/lib/cdpr_dynamics`` of its ament prefix (colcon workspace, /opt/ros, as
     ``ros2 run`` finds it), beside this Python (a venv) or on PATH."""
-    from cdpr_dynamics.node_process import console_script
+    from cdpr_dynamics.ros.process import console_script
     path = console_script(name)
     if path is None:
         raise FileNotFoundError(f'console script {name} not found: is cdpr_dynamics installed '

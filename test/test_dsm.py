@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 
 from cdpr_dynamics import models
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import (Damping, DynamicsError, frequency_response, platform_system,
-                                    rayleigh_from_modal_ratio)
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.system import (Damping, DynamicsError, frequency_response,
+                                           platform_system, rayleigh_from_modal_ratio)
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.models.dsm import ContinuousCables, z_cot_z
 from cdpr_dynamics.models.fem import chain_end_stiffness
-from cdpr_dynamics.modes import mode_count, natural_frequencies
-from cdpr_dynamics.robot import Robot, geometry
+from cdpr_dynamics.dynamics.modes import mode_count, natural_frequencies
+from cdpr_dynamics.mechanics.robot import Robot, geometry
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'paper_cdpr.yaml'
 BAND_HZ = 40.0

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cdpr_dynamics.config import (default_config_path, load_settings, read_params_file,
-                                  settings_from_params)
-from cdpr_dynamics.feasibility import WrenchSet, cable_crossing
-from cdpr_dynamics.robot import geometry, required_wrench
-from cdpr_dynamics.tensions import TensionSolver
+from cdpr_dynamics.analysis.config import (default_config_path, load_settings, read_params_file,
+                                           settings_from_params)
+from cdpr_dynamics.mechanics.feasibility import WrenchSet, cable_crossing
+from cdpr_dynamics.mechanics.robot import geometry, required_wrench
+from cdpr_dynamics.mechanics.tensions import TensionSolver
 
 
 def rigid_settings():

@@ -15,12 +15,12 @@ from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 from cdpr_dynamics import models
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import platform_system
-from cdpr_dynamics.modes import natural_frequencies
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.system import platform_system
+from cdpr_dynamics.dynamics.modes import natural_frequencies
 from cdpr_dynamics.models import catenary
 from cdpr_dynamics.models.base import CableSet
-from cdpr_dynamics.robot import geometry
+from cdpr_dynamics.mechanics.robot import geometry
 
 EA = 2.01e10 * 5.0265e-5
 G = np.array([0.0, 0.0, -9.81])

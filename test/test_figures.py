@@ -1,4 +1,5 @@
-"""cdpr_dynamics.figures: the PNGs of cdpr_analyze and cdpr_tradeoff, checked on the data the
+"""cdpr_dynamics.analysis.figures: the PNGs of cdpr_analyze and cdpr_tradeoff, checked on the data
+the
 figures draw (read back from the artists), not on pixels."""
 import json
 import struct
@@ -9,11 +10,11 @@ import pytest
 from matplotlib.text import Annotation
 from numpy.testing import assert_allclose
 
-from cdpr_dynamics import figures
-from cdpr_dynamics.analysis import build_system, equilibrium, equilibrium_for
+from cdpr_dynamics.analysis import figures
+from cdpr_dynamics.analysis.pipeline import build_system, equilibrium, equilibrium_for
 from cdpr_dynamics.cli import analyze as analyze_cli
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.modes import modes
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.modes import modes
 from conftest import REPO, analyze
 
 RIGID = REPO / 'test' / 'data' / 'rigid_cdpr.yaml'

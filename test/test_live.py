@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import Damping, Newmark
-from cdpr_dynamics.live import AUTO_RECHOOSE_M, LivePredictor
+from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilibrium
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.system import Damping, Newmark
+from cdpr_dynamics.analysis.live import AUTO_RECHOOSE_M, LivePredictor
 
 
 @pytest.fixture(scope='module')

@@ -13,13 +13,13 @@ import pytest
 from rosbags.highlevel import AnyReader
 from visualization_msgs.msg import Marker
 
-from cdpr_dynamics.analysis import equilibrium, geometry_summary
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.analysis.pipeline import equilibrium, geometry_summary
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.recording.cdr import serialize
 from cdpr_dynamics.recording.reader import read_messages
 from cdpr_dynamics.recording.writer import RecordingWriter
-from cdpr_dynamics.robot import quaternion_to_matrix
+from cdpr_dynamics.mechanics.robot import quaternion_to_matrix
 from msg_adapters.joint_state import tensions_message
 from msg_adapters.displacement import displacement_message
 from msg_adapters.markers import (equilibrium_markers, markers_message, plot_markers,

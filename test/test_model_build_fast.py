@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from cdpr_dynamics.analysis import build_system, damping_for, equilibrium
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import ChainNewmark, Damping, Newmark, _pair_pattern, _step_maps
+from cdpr_dynamics.analysis.pipeline import build_system, damping_for, equilibrium
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.system import ChainNewmark, Damping, Newmark, _pair_pattern, _step_maps
 from cdpr_dynamics.models import fem_sag
 from cdpr_dynamics.models.base import CableSet
 from test_pose_update_fast import HEAVY, PAPER, RIGID, _history

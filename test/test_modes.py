@@ -1,4 +1,5 @@
-"""Mode classification (cdpr_dynamics.modes): energy fractions, kinds, cables, effective mass."""
+"""Mode classification (cdpr_dynamics.dynamics.modes): energy fractions, kinds, cables, effective
+mass."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cdpr_dynamics.analysis import build_system, equilibrium
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import DynamicsError, platform_frequencies
-from cdpr_dynamics.modes import (CABLE_SHARE, PLATFORM_SHARE, classify, modes,
-                                 natural_frequencies)
+from cdpr_dynamics.analysis.pipeline import build_system, equilibrium
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.system import DynamicsError, platform_frequencies
+from cdpr_dynamics.dynamics.modes import (CABLE_SHARE, PLATFORM_SHARE, classify, modes,
+                                          natural_frequencies)
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = load_settings(REPO / 'config' / 'paper_cdpr.yaml')

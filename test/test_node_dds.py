@@ -1,6 +1,6 @@
 """dynamics_node under real DDS, as its own process (the installed console script).
 
-Each node runs isolated: a ROS domain id of its own (locked, see cdpr_dynamics.node_process),
+Each node runs isolated: a ROS domain id of its own (locked, see cdpr_dynamics.ros.process),
 localhost-only discovery, its own ROS_LOG_DIR. The test process publishes poses and wrenches,
 receives predictions, tensions and diagnostics, calls the service and changes parameters; every
 number is checked against the library called directly: a mirror LivePredictor fed the inputs the
@@ -39,12 +39,12 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
 
-from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium, frf_arrays
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilibrium, frf_arrays
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.recording.reader import recording_info
-from cdpr_dynamics.node_process import (isolated_env, reserve_domain_id, rss_kib, start_node,
-                                        stop_process)
+from cdpr_dynamics.ros.process import (isolated_env, reserve_domain_id, rss_kib, start_node,
+                                       stop_process)
 from msg_adapters.diagnostics import ERROR, OK, WARN, read_statuses
 from msg_adapters.displacement import read_displacement
 from msg_adapters.frf_service import (ARRAYS, FrequencyResponseError, call_frequency_response,
@@ -869,7 +869,7 @@ INPUT_LOOP = r"""
 import sys, threading, time
 import rclpy
 from geometry_msgs.msg import PoseStamped, WrenchStamped
-from cdpr_dynamics.node import InputLoop, LOOP_WAIT_S
+from cdpr_dynamics.ros.node import InputLoop, LOOP_WAIT_S
 
 rclpy.init()
 node = rclpy.create_node('loop_test', start_parameter_services=False)

@@ -14,14 +14,15 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from cdpr_dynamics.analysis import build_system, damping_for, equilibrium, new_tension_solver
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import ChainNewmark, Newmark, _chain_coupling, _end_coupling
-from cdpr_dynamics.feasibility import WrenchSet
-from cdpr_dynamics.live import LivePredictor
-from cdpr_dynamics.robot import cross, geometry, required_wrench
-from cdpr_dynamics.statics import sag_equilibrium
-from cdpr_dynamics.tensions import TensionSolver
+from cdpr_dynamics.analysis.pipeline import (build_system, damping_for, equilibrium,
+                                             new_tension_solver)
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.system import ChainNewmark, Newmark, _chain_coupling, _end_coupling
+from cdpr_dynamics.mechanics.feasibility import WrenchSet
+from cdpr_dynamics.analysis.live import LivePredictor
+from cdpr_dynamics.mechanics.robot import cross, geometry, required_wrench
+from cdpr_dynamics.mechanics.statics import sag_equilibrium
+from cdpr_dynamics.mechanics.tensions import TensionSolver
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / 'config' / 'paper_cdpr.yaml'
@@ -247,7 +248,7 @@ def test_wrench_set_with_the_rank_known_is_the_same_set(config):
 
 def test_rank_deficient_design_still_refused_with_its_direction():
     """The rank test on singular values alone still names the unheld direction."""
-    from cdpr_dynamics.analysis import AnalysisError
+    from cdpr_dynamics.analysis.pipeline import AnalysisError
     settings = load_settings(PAPER)
     anchors = settings.robot.anchors_m.copy()
     anchors[:, 2] = 2.5                                # every anchor on the ceiling plane

@@ -1,7 +1,8 @@
 """cdpr_replay and the golden recordings of test/data.
 
 The golden recordings (``test/data/golden_<scenario>.mcap``) hold the inputs of a scripted
-scenario (``cdpr_dynamics/scenarios.py``) and the predictions ``cdpr_replay`` made from them
+scenario (``cdpr_dynamics/recording/scenarios.py``) and the predictions ``cdpr_replay`` made from
+them
 with the paper config, ``fem`` with 4 elements per cable. A fresh replay - offline through
 ``cdpr_replay``, and live through ``dynamics_node`` - must give the same predictions.
 
@@ -16,7 +17,7 @@ tolerance: a +5 % Young's modulus or stiffness-damping factor must fail the comp
 Regenerate the golden files after an intended change of the numbers (then review the diff of
 the predictions, e.g. with compare_outputs):
 
-    python -m cdpr_dynamics.scenarios --golden test/data --force
+    python -m cdpr_dynamics.recording.scenarios --golden test/data --force
 
 ROS processes get a domain id of their own (fixture ``ros_env``); their recordings and logs
 land in ``test_output/test_replay/<test>/``, kept when a test fails.
@@ -39,15 +40,15 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from std_msgs.msg import String
 
-from cdpr_dynamics import scenarios
-from cdpr_dynamics.config import read_params_file
+from cdpr_dynamics.recording import scenarios
+from cdpr_dynamics.analysis.config import read_params_file
 from cdpr_dynamics.recording.base import message_class, RecordingError
 from cdpr_dynamics.recording.cdr import serialize
 from cdpr_dynamics.recording.reader import read_messages, recording_info
 from cdpr_dynamics.recording.writer import RecordingWriter
-from cdpr_dynamics.config import ConfigError
-from cdpr_dynamics.replay import (NodeOptions, ReplayError, compare_outputs,
-                                  load_replay_config, read_predictions, replay_offline)
+from cdpr_dynamics.analysis.config import ConfigError
+from cdpr_dynamics.recording.replay import (NodeOptions, ReplayError, compare_outputs,
+                                            load_replay_config, read_predictions, replay_offline)
 from msg_adapters import mcap_schema
 from msg_adapters.pose import pose_message
 from msg_adapters.validation import stamp_to_ns
@@ -612,7 +613,7 @@ class Processes:
 def procs(ros_env, output_dir):
     """Processes on a domain id reserved through node_process's lock files, which cdpr_demo
     and the benchmark use too: their traffic must not land in these recordings."""
-    from cdpr_dynamics.node_process import reserve_domain_id
+    from cdpr_dynamics.ros.process import reserve_domain_id
     with reserve_domain_id() as domain:
         env = dict(ros_env, ROS_DOMAIN_ID=str(domain.domain_id))
         p = Processes(env, output_dir)
@@ -760,9 +761,9 @@ def node_ready(path: Path) -> bool:
 
 def dynamics_node_available() -> str:
     try:
-        from cdpr_dynamics import node_process
+        from cdpr_dynamics.ros import process as node_process
     except ImportError as exc:
-        return f'cdpr_dynamics.node_process: {exc}'
+        return f'cdpr_dynamics.ros.process: {exc}'
     command = node_process.node_command()
     if command[0] == sys.executable:
         return '' if (REPO / 'cdpr_dynamics' / 'node.py').exists() else 'no node.py'
@@ -776,7 +777,7 @@ def test_replay_through_the_node_matches_golden(name, procs, output_dir):
     missing = dynamics_node_available()
     if missing:
         pytest.skip(f'dynamics_node not available: {missing}')
-    from cdpr_dynamics import node_process
+    from cdpr_dynamics.ros import process as node_process
     path = output_dir / 'node.mcap'
     node = procs.start('dynamics_node', node_process.node_command() + [
         '--ros-args', '--params-file', CONFIG,

@@ -1,4 +1,4 @@
-"""Method ``auto`` (cdpr_dynamics.selection): estimates checked against the reference.
+"""Method ``auto`` (cdpr_dynamics.selection.auto): estimates checked against the reference.
 
 The reference is ``dsm`` where sag is negligible and Richardson-extrapolated ``fem_sag`` where
 it is not (every robot here: the paper's lower cables have lambda^2 = 0.20, which moves their
@@ -26,17 +26,17 @@ import numpy as np
 import pytest
 
 from cdpr_dynamics import models
-from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium, safe
-from cdpr_dynamics.config import read_params_file, settings_from_params
-from cdpr_dynamics.dynamics import Damping
-from cdpr_dynamics.live import LivePredictor
+from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilibrium, safe
+from cdpr_dynamics.analysis.config import read_params_file, settings_from_params
+from cdpr_dynamics.dynamics.system import Damping
+from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.models.base import CableSet
-from cdpr_dynamics.closed_forms import (dispersion_error, irvine_symmetric_ratio, largest_phase,
-                                        scene, true_end_stiffness)
-from cdpr_dynamics.estimates import MISSED, Estimator, percent
-from cdpr_dynamics.reference import measure_error, reference_solution
-from cdpr_dynamics.selection import (SAFETY, ModelChoice, SelectionError, accuracy_warnings,
-                                     choose_model, model_dofs)
+from cdpr_dynamics.selection.closed_forms import (dispersion_error, irvine_symmetric_ratio,
+                                                  largest_phase, scene, true_end_stiffness)
+from cdpr_dynamics.selection.estimates import MISSED, Estimator, percent
+from cdpr_dynamics.selection.reference import measure_error, reference_solution
+from cdpr_dynamics.selection.auto import (SAFETY, ModelChoice, SelectionError, accuracy_warnings,
+                                          choose_model, model_dofs)
 from conftest import analyze, write_config
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'paper_cdpr.yaml'

@@ -1,4 +1,4 @@
-"""Slack-aware time history: cables that carry no compression (cdpr_dynamics.slack).
+"""Slack-aware time history: cables that carry no compression (cdpr_dynamics.dynamics.slack).
 
 The paper's own load case (1500 N along z at 5 Hz, lower cables at 100 N) slackens cables:
 the linear model's tension goes to -76 N. Measured here (spring model, dt = 1 ms, the paper's
@@ -13,11 +13,11 @@ import pytest
 from numpy.testing import assert_allclose
 
 from cdpr_dynamics import models
-from cdpr_dynamics.analysis import build_system, damping_for, equilibrium
-from cdpr_dynamics.config import load_settings, read_params_file, settings_from_params
-from cdpr_dynamics.dynamics import Damping, DynamicsError, time_history, tension_change
-from cdpr_dynamics.slack import (CompressionFreeCables, peak_displacement,
-                                 platform_only_method, slack_time_history)
+from cdpr_dynamics.analysis.pipeline import build_system, damping_for, equilibrium
+from cdpr_dynamics.analysis.config import load_settings, read_params_file, settings_from_params
+from cdpr_dynamics.dynamics.system import Damping, DynamicsError, time_history, tension_change
+from cdpr_dynamics.dynamics.slack import (CompressionFreeCables, peak_displacement,
+                                          platform_only_method, slack_time_history)
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'paper_cdpr.yaml'
 PAPER_FORCE = np.array([0.0, 0.0, 1500.0])
@@ -188,7 +188,7 @@ def test_invalid_model_is_refused():
     settings = load_settings(CONFIG)
     eq = equilibrium(settings)
     cables = eq.cables.with_tension(np.where(np.arange(8) == 0, 0.0, eq.cables.tension_n))
-    from cdpr_dynamics.dynamics import platform_system
+    from cdpr_dynamics.dynamics.system import platform_system
     system = platform_system(settings.robot, eq.geometry, models.build('spring', cables))
     with pytest.raises(DynamicsError, match='invalid model'):
         slack_time_history(system, PAPER_FORCE, 5.0, 0.1, Damping())

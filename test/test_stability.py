@@ -15,19 +15,19 @@ import numpy as np
 import pytest
 
 from cdpr_dynamics import models
-from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, build_system, equilibrium,
-                                    frf_arrays, safe)
+from cdpr_dynamics.analysis.pipeline import (AnalysisError, Equilibrium, build_system, equilibrium,
+                                             frf_arrays, safe)
 from cdpr_dynamics.cli.analyze import analyze_method
-from cdpr_dynamics.config import load_settings, read_params_file, settings_from_params
-from cdpr_dynamics.dynamics import Damping, DynamicsError, Newmark, frequency_response
+from cdpr_dynamics.analysis.config import load_settings, read_params_file, settings_from_params
+from cdpr_dynamics.dynamics.system import Damping, DynamicsError, Newmark, frequency_response
 from cdpr_dynamics.models.base import CableSet
-from cdpr_dynamics.robot import geometry
-from cdpr_dynamics.statics import EXIST_MARGIN, lowest_tension
-from cdpr_dynamics.tensions import TensionResult
+from cdpr_dynamics.mechanics.robot import geometry
+from cdpr_dynamics.mechanics.statics import EXIST_MARGIN, lowest_tension
+from cdpr_dynamics.mechanics.tensions import TensionResult
 from cdpr_dynamics.models.catenary import sag_parameter
-from cdpr_dynamics.modes import natural_frequencies
-from cdpr_dynamics.reference import measure_error, reference_solution
-from cdpr_dynamics.selection import accuracy_warnings, choose_model
+from cdpr_dynamics.dynamics.modes import natural_frequencies
+from cdpr_dynamics.selection.reference import measure_error, reference_solution
+from cdpr_dynamics.selection.auto import accuracy_warnings, choose_model
 from conftest import analyze, write_config
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'paper_cdpr.yaml'

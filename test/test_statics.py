@@ -28,14 +28,15 @@ from scipy.optimize import minimize, root
 from scipy.spatial.transform import Rotation
 
 from conftest import analyze, write_config
-from cdpr_dynamics import models, statics
-from cdpr_dynamics.analysis import (AnalysisError, build_system, equilibrium,
-                                    equilibrium_summary, model_warnings)
+from cdpr_dynamics import models
+from cdpr_dynamics.mechanics import statics
+from cdpr_dynamics.analysis.pipeline import (AnalysisError, build_system, equilibrium,
+                                             equilibrium_summary, model_warnings)
 from cdpr_dynamics.cli.analyze import analyze_method
-from cdpr_dynamics.config import read_params_file, settings_from_params
-from cdpr_dynamics.modes import natural_frequencies
+from cdpr_dynamics.analysis.config import read_params_file, settings_from_params
+from cdpr_dynamics.dynamics.modes import natural_frequencies
 from cdpr_dynamics.models import catenary, fem_sag
-from cdpr_dynamics.robot import geometry, required_wrench, skew
+from cdpr_dynamics.mechanics.robot import geometry, required_wrench, skew
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / 'config' / 'paper_cdpr.yaml'

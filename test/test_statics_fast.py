@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from cdpr_dynamics import statics
-from cdpr_dynamics.analysis import AnalysisError, equilibrium
-from cdpr_dynamics.config import load_settings
+from cdpr_dynamics.mechanics import statics
+from cdpr_dynamics.analysis.pipeline import AnalysisError, equilibrium
+from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.models import catenary
 from cdpr_dynamics.models.base import CableSet
 

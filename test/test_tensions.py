@@ -4,10 +4,10 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.optimize import linprog, lsq_linear
 
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.robot import Robot, geometry, required_wrench
-from cdpr_dynamics.tensions import (TensionSolver, closest_tensions, solve_tensions,
-                                    solve_tensions_qpsolvers)
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.mechanics.robot import Robot, geometry, required_wrench
+from cdpr_dynamics.mechanics.tensions import (TensionSolver, closest_tensions, solve_tensions,
+                                              solve_tensions_qpsolvers)
 
 T_MIN, T_MAX = 100.0, 1000.0
 TOL = 1e-4       # N (and N m): TensionSolver's default tolerance for T_max = 1000 N

@@ -1,4 +1,4 @@
-"""The node's worker process (cdpr_dynamics.worker) and the prediction's quaternion.
+"""The node's worker process (cdpr_dynamics.ros.worker) and the prediction's quaternion.
 
 The worker's answers are checked against the same functions called in this process; its
 failures (a job that raises, a child that is killed) against the messages they must give.
@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cdpr_dynamics.analysis import build_system, equilibrium, equilibrium_for, frf_arrays, \
-    system_modes
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.live import LivePredictor, rotated_quaternion
-from cdpr_dynamics.worker import (NICE, BackgroundStatics, JobFailed, StaticsRequest, Worker,
-                                  WorkerError)
+from cdpr_dynamics.analysis.pipeline import (build_system, equilibrium, equilibrium_for,
+                                             frf_arrays, system_modes)
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.analysis.live import LivePredictor, rotated_quaternion
+from cdpr_dynamics.ros.worker import (NICE, BackgroundStatics, JobFailed, StaticsRequest, Worker,
+                                      WorkerError)
 
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 120.0
@@ -87,7 +87,7 @@ def test_without_sched_idle_the_worker_runs_niced():
             'gate = threading.Event()\n'
             'other = threading.Thread(target=gate.wait)\n'
             'other.start()\n'
-            'from cdpr_dynamics.worker import _yield_to_parent\n'
+            'from cdpr_dynamics.ros.worker import _yield_to_parent\n'
             'before = os.getpriority(os.PRIO_PROCESS, other.native_id)\n'
             '_yield_to_parent()\n'
             'print(before, os.getpriority(os.PRIO_PROCESS, 0),\n'

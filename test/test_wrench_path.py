@@ -14,11 +14,11 @@ import pytest
 import scipy.sparse as sp
 from numpy.testing import assert_allclose
 
-from cdpr_dynamics.analysis import damping_for, point_displacement
-from cdpr_dynamics.config import load_settings
-from cdpr_dynamics.dynamics import ChainNewmark, Newmark
-from cdpr_dynamics.live import LivePredictor, rotated_quaternion
-from cdpr_dynamics.robot import matrix_to_quaternion
+from cdpr_dynamics.analysis.pipeline import damping_for, point_displacement
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.system import ChainNewmark, Newmark
+from cdpr_dynamics.analysis.live import LivePredictor, rotated_quaternion
+from cdpr_dynamics.mechanics.robot import matrix_to_quaternion
 from test_pose_update_fast import HEAVY, PAPER, RIGID, _system
 
 

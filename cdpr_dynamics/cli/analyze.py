@@ -6,7 +6,7 @@
                  [--plot-direction {x,y,z,rx,ry,rz}]
 
 Writes the JSON of SPEC section 6 (for the first method; every method under ``methods``) and
-PNG plots (:mod:`cdpr_dynamics.figures`): the FRF along ``--plot-direction`` (one line per
+PNG plots (:mod:`cdpr_dynamics.analysis.figures`): the FRF along ``--plot-direction`` (one line per
 method) and the time histories of every method, the geometry and the mode shapes of the first.
 Errors end with one line naming the cause and exit status 1.
 """
@@ -19,19 +19,20 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.analysis import (AnalysisError, Equilibrium, Stopwatch,
-                                    build_system, damping_for, damping_warnings, equilibrium,
-                                    equilibrium_for, equilibrium_summary, frf_arrays,
-                                    geometry_summary, model_warnings, point_displacement,
-                                    receptance, safe, system_modes)
+from cdpr_dynamics.analysis.pipeline import (AnalysisError, Equilibrium, Stopwatch, build_system,
+                                             damping_for, damping_warnings, equilibrium,
+                                             equilibrium_for, equilibrium_summary, frf_arrays,
+                                             geometry_summary, model_warnings, point_displacement,
+                                             receptance, safe, system_modes)
 from cdpr_dynamics.cli import interruptible
-from cdpr_dynamics.config import METHODS, ConfigError, Settings, load_settings
-from cdpr_dynamics.dynamics import tension_change, time_history
+from cdpr_dynamics.analysis.config import METHODS, ConfigError, Settings, load_settings
+from cdpr_dynamics.dynamics.system import tension_change, time_history
 from cdpr_dynamics.models.catenary import sag_parameter
-from cdpr_dynamics.modes import modes
-from cdpr_dynamics.robot import DOF_NAMES
-from cdpr_dynamics.selection import accuracy_warnings, choose_model
-from cdpr_dynamics.slack import peak_displacement, platform_only_method, slack_time_history
+from cdpr_dynamics.dynamics.modes import modes
+from cdpr_dynamics.mechanics.robot import DOF_NAMES
+from cdpr_dynamics.selection.auto import accuracy_warnings, choose_model
+from cdpr_dynamics.dynamics.slack import (peak_displacement, platform_only_method,
+                                          slack_time_history)
 
 
 def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration_s: float,
@@ -39,7 +40,7 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
     """The SPEC section 6 JSON document of one method at equilibrium ``eq``.
 
     ``slack_aware`` adds to each time history the slack-aware one (cables carry no
-    compression, :mod:`cdpr_dynamics.slack`) under ``slack_aware``.
+    compression, :mod:`cdpr_dynamics.dynamics.slack`) under ``slack_aware``.
     """
     watch = Stopwatch()
     choice = None
@@ -186,8 +187,8 @@ def _slack_aware(settings: Settings, eq: Equilibrium, method: str, f_exc: float,
 def _plot(documents: list[dict], plot_dir: Path, settings: Settings, eq: Equilibrium,
           direction: str = 'z', scene_name: str = '') -> list[Path]:
     """frf.png and time_history.png of every method's document, geometry.png and modes.png of
-    the first method (:mod:`cdpr_dynamics.figures`) at the chord equilibrium ``eq``."""
-    from cdpr_dynamics import figures       # matplotlib: imported only when plotting
+    the first method (:mod:`cdpr_dynamics.analysis.figures`) at the chord equilibrium ``eq``."""
+    from cdpr_dynamics.analysis import figures   # matplotlib: imported only when plotting
     first = documents[0]
     figures.frf_figure(documents, plot_dir / 'frf.png', direction)
     paths = [plot_dir / 'frf.png']

@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.analysis import AnalysisError, build_system, damping_for, equilibrium, \
-    equilibrium_for, new_tension_solver
+from cdpr_dynamics.analysis.pipeline import (AnalysisError, build_system, damping_for, equilibrium,
+                                             equilibrium_for, new_tension_solver)
 from cdpr_dynamics.cli import bench_node, interruptible
-from cdpr_dynamics.config import ConfigError, Settings, default_config_path, load_settings
-from cdpr_dynamics.dynamics import DynamicsError, frequency_response, time_history
-from cdpr_dynamics.robot import geometry, required_wrench
+from cdpr_dynamics.analysis.config import ConfigError, Settings, default_config_path, load_settings
+from cdpr_dynamics.dynamics.system import DynamicsError, frequency_response, time_history
+from cdpr_dynamics.mechanics.robot import geometry, required_wrench
 
 NODE_METHODS = (('spring', 1), ('catenary', 1), ('fem', 16), ('catenary_exact', 1),
                 ('fem_sag', 16))
@@ -97,7 +97,7 @@ def previous_system(settings: Settings, eq, system):
     """``system`` as the FRF code before the closed forms saw it: ``fem`` by the chain
     recursion, ``dsm`` by the complex z cot z, ``fem_sag`` by the 3x3 flexibility recursion,
     every model through 3x3 end-stiffness blocks and the congruence (no shortcuts)."""
-    from cdpr_dynamics.dynamics import platform_system
+    from cdpr_dynamics.dynamics.system import platform_system
     from cdpr_dynamics.models import dsm, fem, fem_sag
 
     assembly = system.assembly
@@ -211,9 +211,9 @@ def bench_frf_sizes(settings: Settings, repeat: int, sizes=(16, 64, 256)) -> dic
 
 def bench_modes(settings: Settings, repeat: int, quick: bool) -> list[dict]:
     """Every mode below ``frf.f_max_hz`` (at least 12), classified: by Wittrick-Williams
-    counting (:func:`cdpr_dynamics.modes.modes`, the default) against the dense / Lanczos
+    counting (:func:`cdpr_dynamics.dynamics.modes.modes`, the default) against the dense / Lanczos
     eigensolver with mode shapes (``shapes=True``, the previous code), in the same run."""
-    from cdpr_dynamics.modes import modes
+    from cdpr_dynamics.dynamics.modes import modes
     eq = equilibrium(settings)
     rows = []
     for method, n in MODE_SIZES[:1] if quick else MODE_SIZES:
@@ -238,8 +238,8 @@ def bench_replay(duration_s: float) -> list[dict]:
     reading, checks, models and writing the output file included."""
     import tempfile
 
-    from cdpr_dynamics import scenarios
-    from cdpr_dynamics.replay import load_replay_config, replay_offline
+    from cdpr_dynamics.recording import scenarios
+    from cdpr_dynamics.recording.replay import load_replay_config, replay_offline
 
     settings, options, _ = load_replay_config()
     rows = []

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.config import load_settings
+from cdpr_dynamics.analysis.config import load_settings
 
 FRF_CALL_POINTS = 20000     # the large call of the wrench-path-during-a-call figure
 
@@ -44,8 +44,8 @@ def compute_per_wrench(settings, n: int = 20000) -> dict:
     checks, feasibility, Newmark to the stamp) and the prediction message, under a 5 Hz force
     along z of 1000 N, or the largest half of it the cables hold both ways (``amplitude_n``:
     a robot that holds less would reject every wrench)."""
-    from cdpr_dynamics.config import NODE_PARAMETER_BY_NAME
-    from cdpr_dynamics.live import LivePredictor
+    from cdpr_dynamics.analysis.config import NODE_PARAMETER_BY_NAME
+    from cdpr_dynamics.analysis.live import LivePredictor
     from msg_adapters.displacement import displacement_message
     from msg_adapters.inputs import InputHandler
     from msg_adapters.validation import s_to_stamp
@@ -88,9 +88,9 @@ def chord_statics_pose_updates(settings, method: str = 'fem_sag', elements: int 
     statics' cost. Not a state the package uses: the chord tensions do not balance sagged
     cables."""
     from cdpr_dynamics import models
-    from cdpr_dynamics.analysis import damping_for, equilibrium, new_tension_solver
-    from cdpr_dynamics.dynamics import platform_system
-    from cdpr_dynamics.live import newmark_for
+    from cdpr_dynamics.analysis.pipeline import damping_for, equilibrium, new_tension_solver
+    from cdpr_dynamics.dynamics.system import platform_system
+    from cdpr_dynamics.analysis.live import newmark_for
 
     solver = new_tension_solver(settings)
     total = []
@@ -112,7 +112,7 @@ def pose_updates(settings, methods=(('spring', 1), ('catenary', 1), ('fem', 16),
     """Pose update time (tensions + model + factorisation) per method along a slow circle;
     sag-aware models include the sag-consistent statics (warm-started pose to pose), and
     ``fem_sag_n16_chord_statics`` is the same model at the chord tensions for the ratio."""
-    from cdpr_dynamics.live import LivePredictor
+    from cdpr_dynamics.analysis.live import LivePredictor
 
     results = {}
     for method, elements in methods:
@@ -146,7 +146,7 @@ def pose_updates(settings, methods=(('spring', 1), ('catenary', 1), ('fem', 16),
 # ------------------------------------------------------------------------------------ DDS
 
 def _ros_session(tag: str):
-    from cdpr_dynamics.node_process import apply_env, isolated_env, reserve_domain_id
+    from cdpr_dynamics.ros.process import apply_env, isolated_env, reserve_domain_id
     reservation = reserve_domain_id(141, 200)
     env = isolated_env(reservation.domain_id, Path(tempfile.mkdtemp(prefix=f'cdpr_{tag}_')))
     apply_env(env)
@@ -166,7 +166,7 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
 
     from rcl_interfaces.srv import GetParameters
 
-    from cdpr_dynamics.node_process import start_node, stop_process
+    from cdpr_dynamics.ros.process import start_node, stop_process
     from msg_adapters.diagnostics import read_statuses
     from msg_adapters.frf_service import request_message
     from msg_adapters.validation import s_to_stamp, stamp_to_ns
@@ -433,7 +433,7 @@ def controller(config, wrench_hz: float, pose_hz: float, duration_s: float,
     from rclpy.node import Node
     from rclpy.qos import qos_profile_sensor_data
 
-    from cdpr_dynamics.live import rotated_quaternion
+    from cdpr_dynamics.analysis.live import rotated_quaternion
     from msg_adapters.pose import pose_message
     from msg_adapters.validation import s_to_stamp
     from msg_adapters.wrench import wrench_message
@@ -492,7 +492,7 @@ def _beside_node_and_recorder(tag: str, config, parameters, child_args: list,
     dynamics_node and ``cdpr_record`` beside it, all child processes on one ROS domain of their
     own; once the node's counts have settled in the recording, stop both. The recording's
     path and the JSON line the source printed."""
-    from cdpr_dynamics.node_process import start_node, stop_process
+    from cdpr_dynamics.ros.process import start_node, stop_process
 
     reservation, env = _ros_session(tag)
     path = Path(env['ROS_LOG_DIR']) / f'{tag}.mcap'

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.config import default_config_path, read_params_file
-from cdpr_dynamics.workspace import chunk_tasks, compute_chunk, grid_poses, serpentine
+from cdpr_dynamics.analysis.config import default_config_path, read_params_file
+from cdpr_dynamics.analysis.workspace import chunk_tasks, compute_chunk, grid_poses, serpentine
 
 METHODS = (('spring', 1), ('fem', 16), ('fem_sag', 16))
 GRID_50 = 50 ** 3

@@ -17,7 +17,7 @@ Stamps are ``t0 + k / rate`` (wall clock, integer nanoseconds).
 This process counts the wrenches published and the predictions received (matched by stamp),
 waits until the last prediction arrived (or the node is idle), reads the node's pose and
 wrench counts from ``/diagnostics``, estimates the cable tensions under the load
-(``cable_tensions`` plus :func:`~cdpr_dynamics.dynamics.tension_change` of the predicted
+(``cable_tensions`` plus :func:`~cdpr_dynamics.dynamics.system.tension_change` of the predicted
 platform motion) and says whether the load slackens a cable, calls ``frequency_response`` (per
 unit force along the load, the configured model and ``method=spring``) and writes a PNG: load
 and predicted displacement over time, cable tensions with the lowest one, and the FRF |H| (m/N,
@@ -51,7 +51,7 @@ from cdpr_dynamics.cli.demo_plan import (
     controller_main, DemoError, Load, read_config, stamps_ns, Trajectory)
 from cdpr_dynamics.cli.demo_results import (
     along, input_sentence, Received, status_count, tension_estimate, TensionEstimate)
-from cdpr_dynamics.config import default_config_path
+from cdpr_dynamics.analysis.config import default_config_path
 
 PROG = 'cdpr_demo'
 DEMO_TOPICS = ['pose', 'wrench', 'predicted_displacement', 'predicted_pose', 'cable_tensions',
@@ -75,7 +75,7 @@ def _round_down(value: float) -> float:
 
 def _environment():
     """Domain, discovery range and log folder: the user's, or isolated ones."""
-    from cdpr_dynamics.node_process import ament_prefix, reserve_domain_id
+    from cdpr_dynamics.ros.process import ament_prefix, reserve_domain_id
     reservation = None
     env = dict(os.environ)
     if not env.get('ROS_DOMAIN_ID'):
@@ -388,7 +388,7 @@ def _frf(node, load: Load, timeout_s: float) -> tuple[dict, dict | None, float]:
 
 def run(args) -> dict:
     """The demo; returns the summary (also printed, and written to ``args.json``)."""
-    from cdpr_dynamics.node_process import start_node, stop_process
+    from cdpr_dynamics.ros.process import start_node, stop_process
 
     config = Path(args.config) if args.config else default_config_path()
     settings, options = read_config(config)

@@ -1,6 +1,7 @@
 """The figure of ``cdpr_demo``: the load and the predicted displacement along it, the cable
 tensions with the lowest one under the load and the slack intervals, the FRF |H| (m/N,
-log-log) with the platform modes marked (:mod:`cdpr_dynamics.figures` draws the FRF and the
+log-log) with the platform modes marked (:mod:`cdpr_dynamics.analysis.figures` draws the FRF and
+the
 shading). Legends beside the axes, markers where predictions are sparse."""
 from __future__ import annotations
 
@@ -48,9 +49,9 @@ def _spans(t_s: np.ndarray, mask: np.ndarray, period_s: float) -> list[tuple[flo
 
 def _frf_modes(frf: dict) -> list[dict]:
     """The service's modes as figures.mark_modes takes them: kind from
-    ``mode_platform_fraction`` (:func:`cdpr_dynamics.modes.classify`), else platform where
+    ``mode_platform_fraction`` (:func:`cdpr_dynamics.dynamics.modes.classify`), else platform where
     listed in ``platform_natural_frequencies_hz``."""
-    from cdpr_dynamics.modes import classify
+    from cdpr_dynamics.dynamics.modes import classify
     natural = np.asarray(frf.get('natural_frequencies_hz', []), dtype=float)
     fraction = frf.get('mode_platform_fraction')
     if fraction is not None and len(fraction) == natural.size:
@@ -71,7 +72,7 @@ def plot(path: Path, result: dict, got: Received, plan: Trajectory, frf: dict,
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    from cdpr_dynamics.figures import draw_frf, shade_intervals
+    from cdpr_dynamics.analysis.figures import draw_frf, shade_intervals
 
     args, load = plan.args, plan.load
     d, period = load.direction, 1.0 / args.wrench_rate

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdpr_dynamics.config import (
+from cdpr_dynamics.analysis.config import (
     ConfigError, node_options, read_params_file, settings_from_params)
 
 #: after the controller's publishers see every subscriber, the subscribers' side of the match
@@ -104,12 +104,12 @@ class Trajectory:
 
     def amplitude_limit_n(self, settings, poses: int = 16) -> float | None:
         """The largest |F0| (N) along the load's direction (its moment scaled with it) that
-        the node's wrench set (:func:`~cdpr_dynamics.live.wrench_set_at`, the tension box)
+        the node's wrench set (:func:`~cdpr_dynamics.analysis.live.wrench_set_at`, the tension box)
         holds with both signs at ``poses`` points of the circle: the least
-        :meth:`~cdpr_dynamics.feasibility.WrenchSet.symmetric_limit` over them; 0 where a
+        :meth:`~cdpr_dynamics.mechanics.feasibility.WrenchSet.symmetric_limit` over them; 0 where a
         pose itself has no feasible tensions, None for a load without force."""
-        from cdpr_dynamics.analysis import AnalysisError, equilibrium
-        from cdpr_dynamics.live import wrench_set_at
+        from cdpr_dynamics.analysis.pipeline import AnalysisError, equilibrium
+        from cdpr_dynamics.analysis.live import wrench_set_at
         amplitude = self.load.amplitude_n
         if amplitude == 0.0:
             return None

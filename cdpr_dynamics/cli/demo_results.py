@@ -32,7 +32,7 @@ def status_count(status: dict | None, key: str) -> int | None:
 class TensionEstimate:
     """Cable tensions under the load, T_i(t) = T_i^static(t) + dT_i(q(t)): the node's
     ``cable_tensions`` in force at each prediction's stamp plus the quasi-static change
-    :func:`~cdpr_dynamics.dynamics.tension_change` of the predicted platform motion q (the
+    :func:`~cdpr_dynamics.dynamics.system.tension_change` of the predicted platform motion q (the
     model linearised at the initial pose: on the paper robot the 5 cm circle changes dT by up
     to 5.4 %, checked at its far point).
     ``t_s`` (nt,) s from t0, ``static_n`` and ``total_n`` (nt, n) N."""
@@ -86,8 +86,8 @@ def _platform_motion(settings, options, got: Received, stamps) -> tuple[np.ndarr
 
 def tension_estimate(settings, options, got: Received, t0_ns: int) -> TensionEstimate | str:
     """:class:`TensionEstimate` of the predictions received, or the reason there is none."""
-    from cdpr_dynamics.analysis import AnalysisError, build_system, equilibrium
-    from cdpr_dynamics.dynamics import DynamicsError, tension_change
+    from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilibrium
+    from cdpr_dynamics.dynamics.system import DynamicsError, tension_change
     stamps = np.array(sorted(got.predictions), dtype=np.int64)
     rows = sorted(got.tensions)
     if not stamps.size or not rows:

@@ -25,7 +25,7 @@ import signal
 import sys
 import threading
 
-from cdpr_dynamics.config import METHODS
+from cdpr_dynamics.analysis.config import METHODS
 from msg_adapters.inputs import NUMERIC_ERRORS, first_line
 
 PROG = 'cdpr_replay'
@@ -103,8 +103,8 @@ class _Bar:
 
 def _offline(args) -> int:
     from cdpr_dynamics.recording.base import RecordingError
-    from cdpr_dynamics.replay import (ReplayError, load_replay_config, replay_offline,
-                                      summary_lines)
+    from cdpr_dynamics.recording.replay import (ReplayError, load_replay_config,
+                                                replay_offline, summary_lines)
 
     def on_term(signum, frame):   # as Ctrl-C: the partial output is removed
         raise KeyboardInterrupt
@@ -145,7 +145,8 @@ def _live(args, argv) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from cdpr_dynamics.recording.base import RecordingError
-    from cdpr_dynamics.replay import ReplayError, inspect_input, replay_live, resolve_input
+    from cdpr_dynamics.recording.replay import (ReplayError, inspect_input, replay_live,
+                                                resolve_input)
 
     try:   # a bad file fails before anything starts
         inspect_input(resolve_input(args.input), args.pose_topic, args.wrench_topic,

@@ -9,7 +9,8 @@ ascending order, a missed mode counting 100 %; the damped FRF of the centroid, m
 error of the complex response over the sweep, which bounds the error of |A|) against the
 compute time (build + FRF + modes in the band, median of ``--repeat`` runs). The reference is
 ``dsm`` where sag is negligible and Richardson-extrapolated ``fem_sag`` where it is not
-(:func:`cdpr_dynamics.reference.reference_solution`); the chart's title says which. The CSV
+(:func:`cdpr_dynamics.selection.reference.reference_solution`); the chart's title says which. The
+CSV
 also has ``auto``'s estimates of both errors, so the estimates can be read against the truth,
 and the chart marks what ``auto`` picks at ``model.tolerance``.
 
@@ -26,14 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.analysis import AnalysisError, equilibrium
+from cdpr_dynamics.analysis.pipeline import AnalysisError, equilibrium
 from cdpr_dynamics.cli import interruptible
-from cdpr_dynamics.config import ConfigError, load_settings
-from cdpr_dynamics.dynamics import DynamicsError
-from cdpr_dynamics.estimates import Estimator
-from cdpr_dynamics.figures import CAP_PCT, pareto, tradeoff_figure  # noqa: F401 (re-exported)
-from cdpr_dynamics.reference import measure_error, reference_solution, solve
-from cdpr_dynamics.selection import SelectionError, choose_model
+from cdpr_dynamics.analysis.config import ConfigError, load_settings
+from cdpr_dynamics.dynamics.system import DynamicsError
+from cdpr_dynamics.selection.estimates import Estimator
+# re-exported for the tests
+from cdpr_dynamics.analysis.figures import CAP_PCT, pareto, tradeoff_figure  # noqa: F401
+from cdpr_dynamics.selection.reference import measure_error, reference_solution, solve
+from cdpr_dynamics.selection.auto import SelectionError, choose_model
 
 SWEEP = ([('spring', 1)] + [('fem', n) for n in (1, 2, 4, 8, 16, 32, 64)]
          + [('catenary', 1), ('catenary_exact', 1)]
@@ -98,7 +100,8 @@ def write_csv(rows: list[dict], path: Path) -> None:
 
 def plot(rows: list[dict], reference, path: Path, scene_name: str,
          tolerance: float | None = None):
-    """The chart (:func:`cdpr_dynamics.figures.tradeoff_figure`), titled with the scene, the
+    """The chart (:func:`cdpr_dynamics.analysis.figures.tradeoff_figure`), titled with the scene,
+    the
     band and the reference; errors capped at :data:`CAP_PCT` for the drawing only (the CSV
     and the estimates are not)."""
     return tradeoff_figure(rows, path, f'{scene_name}: error over 0-{reference.f_max_hz:g} Hz '

@@ -8,13 +8,13 @@
 
 Writes ``DIR/workspace.parquet`` (one row per pose and design variant, SPEC section 6; the
 config, the varied values and the command in its metadata under ``cdpr_workspace``), PNG maps
-of slices (:mod:`cdpr_dynamics.workspace_maps`) and ``DIR/summary.md``.
+of slices (:mod:`cdpr_dynamics.analysis.workspace_maps`) and ``DIR/summary.md``.
 
 Engine. By default a ``dask.distributed.LocalCluster`` of ``--workers`` processes (one
 thread each; default: the cores of this machine) on 127.0.0.1; ``--scheduler ADDRESS`` sends
 the same tasks to an existing Dask cluster (its workers need cdpr_dynamics installed);
 ``--workers 0`` computes in this process, without Dask. A task is a chunk of neighbouring
-poses (:func:`cdpr_dynamics.workspace.chunk_tasks`); a task that raises is retried
+poses (:func:`cdpr_dynamics.analysis.workspace.chunk_tasks`); a task that raises is retried
 ``--retries`` times by Dask (a worker that dies is replaced and its tasks rerun, up to the
 scheduler's ``allowed-failures``), then its poses get ``status = failed`` with the reason
 (the table is still written; the exit status is then 1 and ``--resume`` recomputes them).
@@ -40,12 +40,13 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.cli import interruptible
-from cdpr_dynamics.config import (METHODS, ConfigError, default_config_path, read_params_file,
-                                  settings_from_params)
-from cdpr_dynamics.workspace import (DEFAULT_CHUNK, WorkspaceError, axis_values, chunk_table,
-                                     chunk_tasks, compute_chunk, failed_columns, grid_poses,
-                                     parse_vary, read_poses_csv, serpentine, unit_quaternion,
-                                     variants)
+from cdpr_dynamics.analysis.config import (METHODS, ConfigError, default_config_path,
+                                           read_params_file, settings_from_params)
+from cdpr_dynamics.analysis.workspace import (DEFAULT_CHUNK, WorkspaceError, axis_values,
+                                              chunk_table, chunk_tasks, compute_chunk,
+                                              failed_columns, grid_poses, parse_vary,
+                                              read_poses_csv, serpentine, unit_quaternion,
+                                              variants)
 
 PROG = 'cdpr_workspace'
 PLAN_VERSION = 1
@@ -359,7 +360,7 @@ def main(argv=None) -> int:
         bar.close()
         path, table = assemble(run, argv)
         written = [path]
-        from cdpr_dynamics import workspace_maps
+        from cdpr_dynamics.analysis import workspace_maps
         if not args.no_maps:
             written += workspace_maps.write_maps(table, run, args.maps_axis)
         written.append(workspace_maps.write_summary(table, run))

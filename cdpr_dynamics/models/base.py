@@ -24,6 +24,12 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 
+def row_norm(x: np.ndarray) -> np.ndarray:
+    """|x| along the last axis: ``np.linalg.norm(x, axis=-1)``'s arithmetic (the same
+    numbers) without its argument handling, half the cost on a few rows."""
+    return np.sqrt(np.add.reduce(x * x, axis=-1))
+
+
 @dataclass(frozen=True, eq=False)
 class CableSet:
     """The cables at one state, stacked over cables (first axis n); SI units.

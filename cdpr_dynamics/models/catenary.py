@@ -79,9 +79,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cdpr_dynamics.models.base import (CableAssembly, CableSet, axial_transverse,
+from cdpr_dynamics.models.base import (row_norm, CableAssembly, CableSet, axial_transverse,
                                        massless_assembly)
-from cdpr_dynamics.robot import row_norm
 
 
 # --------------------------------------------------------------------------- closed forms
@@ -714,13 +713,13 @@ def exists(cables: CableSet) -> np.ndarray:
 
     Explicit test: T_i >= 2 gamma L_i (the cable's weight over its chord at most half its end
     tension) and L_i >= EXISTENCE_TOLERANCE/ACCEPT_TOLERANCE = 0.1 m. Such a catenary exists
-    (the least end tension at which one spans a chord, :func:`cdpr_dynamics.statics.
+    (the least end tension at which one spans a chord, :func:`cdpr_dynamics.mechanics.statics.
     lowest_tension`, is at most ~1.05 gamma L, for chords ~60 degrees steep with the platform
     end on top; gamma L for a vertical one hanging from it; ~0.75 gamma L for a level one),
     stays taut (its tension is above T_i - gamma L0 > 0 at the ends and H > 0 at a low point)
     and the solve's taut parabola start (used where gamma L0/2 < T/4, here always) is
     first-order exact in gamma L/T: Newton converges in a few steps (at most 4 iterations)
-    (``test/test_catenary_fast.py`` compares the verdicts over random chords, inclinations,
+    (``test/test_catenary_kernels.py`` compares the verdicts over random chords, inclinations,
     tensions and EA, and checks the bound on the least tension). The length bound keeps the
     solve's stopping test (``EXISTENCE_TOLERANCE`` max(L, 1) on the tension row scaled by L)
     within its acceptance test (``ACCEPT_TOLERANCE`` relative): shorter chords can stop just

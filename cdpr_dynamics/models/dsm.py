@@ -23,7 +23,7 @@ consistent mass), whose end stiffness and natural frequencies converge to it as 
 There are no finite matrices (``blocks`` is None): natural frequencies and classified modes
 come from Wittrick-Williams counting on the condensed platform dynamic stiffness, with the
 cables' fixed-end modes (:meth:`ContinuousCables.fixed_end_mode_count`) as J0
-(:mod:`cdpr_dynamics.modes`).
+(:mod:`cdpr_dynamics.dynamics.modes`).
 
 Valid while the cables are taut and their sag negligible; a cable with T <= 0 is flagged
 (``valid`` False), its transverse stiffness taken as the T -> 0 limit 0 (T = 0) or the

@@ -1,0 +1,109 @@
+"""``auto``'s estimates against the measured errors: the table that sets ``selection.SAFETY``.
+
+    python -m cdpr_dynamics.cli.estimate_table [CONFIG ...]
+
+For each robot (default :data:`ROBOTS`) and each model of :data:`MODELS`: the estimated
+(:class:`~cdpr_dynamics.selection.estimates.Estimator`) and the measured
+(:func:`~cdpr_dynamics.selection.reference.measure_error`) errors of the natural frequencies in
+the band
+and of the damped FRF, over each robot's [0, ``frf.f_max_hz``], and their ratio
+measured / estimated (the larger of the two; estimates and measurements not capped, a missed
+mode 100 %). Prints a Markdown table and the largest ratio; exit status 1 with one line on a
+bad config, 130 on Ctrl-C.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from cdpr_dynamics.analysis.pipeline import AnalysisError, equilibrium
+from cdpr_dynamics.cli import interruptible
+from cdpr_dynamics.analysis.config import ConfigError, load_settings
+from cdpr_dynamics.dynamics.system import DynamicsError
+from cdpr_dynamics.selection.estimates import Estimator
+from cdpr_dynamics.selection.reference import measure_error, reference_solution
+from cdpr_dynamics.selection.auto import SAFETY, SelectionError
+
+ROOT = Path(__file__).resolve().parents[2]
+ROBOTS = ('config/paper_cdpr.yaml', 'config/low_tension_cdpr.yaml', 'test/data/rigid_cdpr.yaml',
+          'test/data/sagging_6dof.yaml')
+MODELS = (('spring', 1), ('fem', 4), ('fem', 8), ('fem', 16), ('catenary_exact', 1),
+          ('fem_sag', 4), ('fem_sag', 8), ('fem_sag', 16))
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One model on one robot: estimated and measured relative errors (1 = 100 %)."""
+
+    robot: str
+    method: str
+    elements_per_cable: int
+    dofs: int
+    estimated_freq_error: float
+    estimated_frf_error: float
+    measured_freq_error: float
+    measured_frf_error: float
+    floor: float                   # below this a measured error is the reference's own
+
+    @property
+    def ratio(self) -> float:
+        """max(measured / estimated) over both errors, counting measured errors at or below
+        :attr:`floor` as 0 (inf where a measured error above it was estimated 0)."""
+        pairs = ((self.measured_freq_error, self.estimated_freq_error),
+                 (self.measured_frf_error, self.estimated_frf_error))
+        return max((m / e if e > 0 else math.inf) if m > self.floor else 0.0 for m, e in pairs)
+
+
+def robot_entries(robot: str, settings, models=MODELS) -> list[Entry]:
+    """The table's rows for one robot (its equilibrium, band and damping as configured)."""
+    eq = equilibrium(settings)
+    reference = reference_solution(settings, eq)
+    estimator = Estimator(settings, eq, reference.f_max_hz, reference.damping)
+    floor = max(10.0 * reference.uncertainty, 1e-6)
+    rows = []
+    for method, n in models:
+        e = estimator.estimate(method, n)
+        m = measure_error(settings, eq, method, n, reference)
+        rows.append(Entry(robot, method, n, m.dofs, e.freq_error, e.frf_error, m.freq_error,
+                          m.frf_error, floor))
+    return rows
+
+
+def markdown(entries: list[Entry]) -> str:
+    """The table as Markdown (errors in %), and a last line with the largest ratio."""
+    lines = ['| robot | model | DOFs | modes est. % | modes meas. % | FRF est. % | FRF meas. % '
+             '| meas./est. |', '|---|---|---:|---:|---:|---:|---:|---:|']
+    for r in entries:
+        name = f'{r.method} {r.elements_per_cable}' if r.method in ('fem', 'fem_sag') \
+            else r.method
+        lines.append(f'| {r.robot} | {name} | {r.dofs} | {100 * r.estimated_freq_error:.3g} | '
+                     f'{100 * r.measured_freq_error:.3g} | {100 * r.estimated_frf_error:.3g} | '
+                     f'{100 * r.measured_frf_error:.3g} | {r.ratio:.2f} |')
+    worst = max(entries, key=lambda r: r.ratio)
+    lines.append(f'\nlargest measured/estimated ratio {worst.ratio:.2f} ({worst.robot}, '
+                 f'{worst.method} {worst.elements_per_cable}); SAFETY = {SAFETY:g}')
+    return '\n'.join(lines)
+
+
+@interruptible('estimate_table')
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog='python -m cdpr_dynamics.cli.estimate_table',
+                                     description=__doc__.split('\n')[0])
+    parser.add_argument('configs', nargs='*', help='robots (default: the four of the table)')
+    args = parser.parse_args(argv)
+    entries = []
+    try:
+        for path in args.configs or [str(ROOT / p) for p in ROBOTS]:
+            entries += robot_entries(Path(path).stem, load_settings(path))
+    except (ConfigError, AnalysisError, SelectionError, DynamicsError) as exc:
+        print(f'estimate_table: error: {str(exc).splitlines()[0]}', file=sys.stderr)
+        return 1
+    print(markdown(entries))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

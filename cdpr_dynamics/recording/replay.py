@@ -1,0 +1,582 @@
+"""Replay a recording's pose and wrench messages through the live core (``cdpr_replay``).
+
+Offline (:func:`replay_offline`): the ``pose`` (PoseStamped) and ``wrench`` (WrenchStamped)
+messages of an MCAP file (one written here, or by ``ros2 bag record -s mcap``: the file or its
+bag directory; the topics may carry a namespace) go, in log-time order (or header-stamp
+order), through :class:`InputHandler` - the checks and the
+:class:`~cdpr_dynamics.analysis.live.LivePredictor` calls of ``dynamics_node``'s callbacks - and a
+new
+MCAP file gets the inputs (their CDR bytes unchanged) plus what the node would have published:
+
+* ``predicted_displacement`` (Vector3Stamped): one per accepted wrench, stamped with the
+  wrench's stamp, in ``robot.frame_id``;
+* ``cable_tensions`` (JointState, position = length m, effort = tension N): one per accepted
+  pose, stamped with the pose's stamp;
+* ``/diagnostics`` (DiagnosticArray): one per rejected input, status ``cdpr_dynamics: pose
+  input`` (ERROR) or ``cdpr_dynamics: wrench input`` (WARN), message = the reason, values
+  ``kind``, ``topic``, ``stamp_ns``.
+
+The outputs sit beside their inputs (``/ns/wrench`` -> ``/ns/predicted_displacement``), with log
+and publish time those of the input that caused them. The file has the recorder's schemas and
+channel metadata (:class:`cdpr_dynamics.recording.writer.RecordingWriter`), a ``cdpr_replay``
+metadata record (input, topics, order, method, parameters) and appears under its name only when
+complete.
+
+Live (:func:`replay_live`): republishes the messages on ``pose`` and ``wrench`` (relative
+names: ``--ros-args -r __ns:=/robot`` or remapping place them) with the recorded log-time
+spacing divided by ``rate``, after waiting for subscribers.
+
+:func:`compare_outputs` matches the predictions of two files by header stamp within a tolerance
+(the golden-recording tests).
+"""
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from cdpr_dynamics.analysis.config import (NODE_PARAMETER_BY_NAME, Settings, node_options,
+                                           read_params_file, settings_from_params)
+from cdpr_dynamics.analysis.live import LivePredictor
+from cdpr_dynamics.recording.base import RecordingError
+from cdpr_dynamics.recording.reader import read_messages, recording_info
+from cdpr_dynamics.recording.writer import RecordingWriter
+from msg_adapters import diagnostics as diag
+from msg_adapters.displacement import displacement_message, read_displacement
+from msg_adapters.joint_state import read_tensions, tensions_message
+from msg_adapters.pose import pose_message
+from msg_adapters.inputs import InputHandler
+from msg_adapters.validation import InvalidMessage, stamp_to_ns
+
+POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
+WRENCH_TYPE = 'geometry_msgs/msg/WrenchStamped'
+DISPLACEMENT_TYPE = 'geometry_msgs/msg/Vector3Stamped'
+TENSIONS_TYPE = 'sensor_msgs/msg/JointState'
+DIAGNOSTICS_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+NODE_NAME = 'cdpr_dynamics'
+HARDWARE_ID = 'cdpr_replay'
+ORDERS = ('log', 'stamp')
+
+
+class ReplayError(RuntimeError):
+    """A replay that cannot be done as asked; the message is one line."""
+
+
+# ----------------------------------------------------------------------------- the node's inputs
+
+
+@dataclass(frozen=True)
+class NodeOptions:
+    """The node-only parameters that shape how inputs are accepted (``node.*``)."""
+
+    pose_tolerance_m: float = NODE_PARAMETER_BY_NAME['node.pose_tolerance_m'].default
+    angle_tolerance_rad: float = NODE_PARAMETER_BY_NAME['node.angle_tolerance_rad'].default
+    quaternion_tolerance: float = NODE_PARAMETER_BY_NAME['node.quaternion_tolerance'].default
+    output_point_m: tuple = tuple(NODE_PARAMETER_BY_NAME['node.output_point_m'].default)
+
+    def __post_init__(self):
+        """Keep ``output_point_m`` a tuple of floats (hashable, JSON in the metadata)."""
+        object.__setattr__(self, 'output_point_m', tuple(float(v) for v in self.output_point_m))
+
+    @classmethod
+    def from_params(cls, flat: dict) -> 'NodeOptions':
+        """From flat parameters (a params file), validated as the node validates them."""
+        options = node_options(flat)
+        return cls(**{f.name: options[f'node.{f.name}'] for f in fields(cls)})
+
+
+def load_replay_config(path=None) -> tuple[Settings, NodeOptions, dict]:
+    """Settings, node options and the flat parameters of a ROS 2 params file (default: the
+    installed paper config)."""
+    from cdpr_dynamics.analysis.config import default_config_path
+
+    flat = read_params_file(path or default_config_path())
+    return settings_from_params(flat), NodeOptions.from_params(flat), flat
+
+
+def rejection_message(what: str, exc: InvalidMessage, topic: str, stamp):
+    """The /diagnostics message of one rejected input (``what``: 'pose' or 'wrench')."""
+    level = diag.ERROR if what == 'pose' else diag.WARN   # the node's levels for its inputs
+    status = diag.status_message(
+        f'{NODE_NAME}: {what} input', level, str(exc),
+        {'kind': exc.kind, 'topic': topic, 'stamp_ns': stamp_to_ns(stamp)}, HARDWARE_ID)
+    return diag.diagnostics_message([status], stamp)
+
+
+# ----------------------------------------------------------------------------- input topics
+
+
+def _namespace(topic: str) -> str:
+    return topic.rsplit('/', 1)[0]
+
+
+def _absolute(name: str) -> str:
+    return name if name.startswith('/') else '/' + name
+
+
+def find_input_topics(info, pose_topic: str | None = None,
+                      wrench_topic: str | None = None) -> tuple[str, str]:
+    """The pose and wrench topics of a recording: the given names, or the one topic named
+    ``pose`` (``wrench``), with or without a namespace. Raises :class:`ReplayError`."""
+    topics = {name: t.type for name, t in info.topics.items()}
+    listing = ', '.join(f'{n} ({t.rsplit("/", 1)[-1]})' for n, t in sorted(topics.items()))
+    listing = listing or 'none'
+
+    def pick(given, base, type_name, flag):
+        if given:
+            name = _absolute(given)
+            if name not in topics:
+                raise ReplayError(f'{info.path}: no topic {name} (topics: {listing})')
+            candidates = [name]
+        else:
+            candidates = [n for n in topics if n.rsplit('/', 1)[-1] == base]
+            if not candidates:
+                raise ReplayError(f'{info.path}: no {base} topic ({type_name} on .../{base}); '
+                                  f'topics: {listing}; name one with {flag}')
+        typed = [n for n in candidates if topics[n] == type_name]
+        if not typed:
+            name = candidates[0]
+            raise ReplayError(f'{info.path}: topic {name} has type {topics[name] or "unknown"}, '
+                              f'expected {type_name}')
+        if len(typed) > 1:
+            raise ReplayError(f'{info.path}: several {base} topics ({", ".join(sorted(typed))}); '
+                              f'choose one with {flag}')
+        return typed[0]
+
+    return (pick(pose_topic, 'pose', POSE_TYPE, '--pose-topic'),
+            pick(wrench_topic, 'wrench', WRENCH_TYPE, '--wrench-topic'))
+
+
+def resolve_input(path) -> Path:
+    """The MCAP file to read: ``path`` itself, or the one ``.mcap`` file of a bag directory
+    (what ``ros2 bag record -s mcap`` makes). Raises :class:`ReplayError`."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    files = sorted(path.glob('*.mcap'))
+    if len(files) == 1:
+        return files[0]
+    if not files:
+        raise ReplayError(f'{path} is a directory without an .mcap file')
+    raise ReplayError(f'{path} is a bag split into {len(files)} files '
+                      f'({", ".join(f.name for f in files[:3])}...): replay them one by one')
+
+
+def inspect_input(input_path, pose_topic: str | None = None, wrench_topic: str | None = None,
+                  allow_incomplete: bool = False):
+    """Check an input before replaying it: (RecordingInfo, pose topic, wrench topic, number of
+    input messages). Raises :class:`ReplayError` / ``RecordingError`` with one line."""
+    info = recording_info(input_path)
+    if not info.complete and not allow_incomplete:
+        raise ReplayError(f'{info.path}: incomplete MCAP file (no footer or index: cut short, '
+                          'or its recorder was killed); --allow-incomplete replays what '
+                          'survives')
+    if not info.complete and not info.message_count:
+        raise ReplayError(f'{info.path}: incomplete MCAP file, and no message survives in it '
+                          '(no complete chunk)')
+    pose, wrench = find_input_topics(info, pose_topic, wrench_topic)
+    total = info.topics[pose].message_count + info.topics[wrench].message_count
+    if total == 0 and info.complete:
+        raise ReplayError(f'{info.path}: {pose} and {wrench} hold no messages')
+    return info, pose, wrench, total
+
+
+def _input_stream(path, pose, wrench, order: str, allow_incomplete: bool, on_bad=None):
+    messages = read_messages(path, {pose: POSE_TYPE, wrench: WRENCH_TYPE}, raw=True,
+                             allow_incomplete=allow_incomplete, on_bad=on_bad)
+    if order == 'stamp':   # header stamps, then log time (stable)
+        return iter(sorted(messages, key=lambda m: (
+            stamp_to_ns(m.message.header.stamp), m.log_time_ns)))
+    if allow_incomplete:   # a scan gives file order
+        return iter(sorted(messages, key=lambda m: m.log_time_ns))
+    return messages
+
+
+# ----------------------------------------------------------------------------- offline
+
+
+def _qos(depth: int, transient_local: bool = False) -> dict:
+    """A reliable keep-last publisher QoS as rosbag2 stores it (the node's publishers)."""
+    zero = {'sec': 0, 'nsec': 0}
+    return {'history': 'keep_last', 'depth': depth, 'reliability': 'reliable',
+            'durability': 'transient_local' if transient_local else 'volatile',
+            'deadline': dict(zero), 'lifespan': dict(zero), 'liveliness': 'automatic',
+            'liveliness_lease_duration': dict(zero), 'avoid_ros_namespace_conventions': False}
+
+
+@dataclass
+class ReplaySummary:
+    """What :func:`replay_offline` did."""
+
+    input_path: Path
+    output_path: Path
+    pose_topic: str
+    wrench_topic: str
+    order: str
+    method: str                 # configured model.method
+    elements_per_cable: int
+    dofs: int                   # of the model at the end
+    poses: int = 0
+    wrenches: int = 0
+    poses_accepted: int = 0
+    wrenches_accepted: int = 0
+    rebuilds: int = 0
+    rejected: Counter = field(default_factory=Counter)  # 'pose:kind' / 'wrench:kind' -> count
+    skipped: int = 0            # input messages that did not decode (skip_bad)
+    first_skipped: str = ''     # the first one's error
+    messages_written: int = 0
+    bytes: int = 0
+    elapsed_s: float = 0.0
+
+    @property
+    def inputs(self) -> int:
+        return self.poses + self.wrenches
+
+    @property
+    def messages_per_s(self) -> float:
+        """Input messages replayed per second (reading, models, writing)."""
+        return self.inputs / self.elapsed_s if self.elapsed_s > 0 else float('inf')
+
+
+def replay_offline(input_path, output_path, settings: Settings, method: str | None = None,
+                   progress: Callable[[int, int], None] | None = None, *,
+                   elements_per_cable: int | None = None, options: NodeOptions | None = None,
+                   force: bool = False, pose_topic: str | None = None,
+                   wrench_topic: str | None = None, order: str = 'log',
+                   allow_incomplete: bool = False, parameters: dict | None = None,
+                   skip_bad: bool = False) -> ReplaySummary:
+    """Replay the pose and wrench messages of ``input_path`` into a new file ``output_path``.
+
+    ``settings`` (e.g. :func:`load_replay_config`), with ``method`` / ``elements_per_cable``
+    overriding the configured model; ``options``: the node's input tolerances. ``progress``:
+    called as ``progress(done, total)`` with input messages. ``order``: 'log' (receive time,
+    as the node saw them) or 'stamp' (header stamps). ``parameters``: the flat parameters, kept
+    in the output's ``cdpr_replay`` metadata record. ``skip_bad``: input messages whose bytes
+    do not decode are counted (``skipped``) and left out, instead of ending the replay with an
+    error naming the first. Raises :class:`ReplayError`,
+    :class:`~cdpr_dynamics.recording.base.RecordingError` (input or output file) or
+    :class:`~cdpr_dynamics.analysis.config.ConfigError` / :class:`AnalysisError` (a model that
+    cannot be
+    built at the initial pose), all one line; nothing is left at ``output_path`` then.
+    """
+    start = time.perf_counter()
+    if order not in ORDERS:
+        raise ReplayError(f'unknown order {order!r} (log or stamp)')
+    changes = {}
+    if method is not None:
+        changes['method'] = method
+    if elements_per_cable is not None:
+        changes['elements_per_cable'] = int(elements_per_cable)
+    if changes:
+        settings = settings.replace(**changes)
+    options = options or NodeOptions()
+    input_path, output_path = resolve_input(input_path), Path(output_path)
+    if output_path.exists() and input_path.exists() and output_path.samefile(input_path):
+        raise ReplayError(f'{output_path} is the input file; write the replay elsewhere')
+    info, pose, wrench, total = inspect_input(input_path, pose_topic, wrench_topic,
+                                              allow_incomplete)
+    predictor = LivePredictor(settings, options.pose_tolerance_m, options.angle_tolerance_rad)
+    frame_id = settings.robot.frame_id
+    handler = InputHandler(predictor, frame_id, options.quaternion_tolerance)
+    displacement_topic = f'{_namespace(wrench)}/predicted_displacement'
+    predicted_pose_topic = f'{_namespace(wrench)}/predicted_pose'
+    tensions_topic = f'{_namespace(pose)}/cable_tensions'
+    summary = ReplaySummary(input_path, output_path, pose, wrench, order, settings.method,
+                            settings.elements_per_cable, predictor.system.dofs)
+
+    with RecordingWriter(output_path, force=force) as writer:
+        for name in (pose, wrench):
+            writer.add_topic(name, info.topics[name].type, info.topics[name].offered_qos_profiles,
+                             info.topics[name].type_hash or None)
+        writer.add_topic(displacement_topic, DISPLACEMENT_TYPE, [_qos(10)])
+        writer.add_topic(predicted_pose_topic, POSE_TYPE, [_qos(10)])
+        writer.add_topic(tensions_topic, TENSIONS_TYPE, [_qos(1, transient_local=True)])
+        writer.add_topic(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE, [_qos(10)])
+        writer.add_metadata('cdpr_replay', {
+            'input': input_path.name, 'pose_topic': pose, 'wrench_topic': wrench,
+            'order': order, 'method': settings.method,
+            'elements_per_cable': str(settings.elements_per_cable),
+            'node_options': json.dumps(options.__dict__, sort_keys=True),
+            'parameters': json.dumps(parameters or {}, sort_keys=True, default=str)})
+        done = 0
+
+        def on_bad(error):
+            summary.skipped += 1
+            summary.first_skipped = summary.first_skipped or str(error)
+
+        for item in _input_stream(input_path, pose, wrench, order, allow_incomplete,
+                                  on_bad if skip_bad else None):
+            writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
+            msg = item.message
+            t = item.log_time_ns
+            if item.topic == pose:
+                summary.poses += 1
+                try:
+                    update = handler.pose(msg)
+                except InvalidMessage as exc:
+                    summary.rejected[f'pose:{exc.kind}'] += 1
+                    writer.write(DIAGNOSTICS_TOPIC,
+                                 rejection_message('pose', exc, pose, msg.header.stamp), t, t)
+                else:
+                    summary.poses_accepted += 1
+                    summary.rebuilds += int(update.rebuilt)
+                    eq = predictor.eq
+                    writer.write(tensions_topic, tensions_message(
+                        eq.geometry.length_m, eq.tensions.tension_n, msg.header.stamp,
+                        frame_id), t, t)
+            else:
+                summary.wrenches += 1
+                try:
+                    handler.wrench(msg)
+                except InvalidMessage as exc:
+                    summary.rejected[f'wrench:{exc.kind}'] += 1
+                    writer.write(DIAGNOSTICS_TOPIC,
+                                 rejection_message('wrench', exc, wrench, msg.header.stamp),
+                                 t, t)
+                else:
+                    summary.wrenches_accepted += 1
+                    out = predictor.prediction(options.output_point_m)
+                    writer.write(displacement_topic, displacement_message(
+                        out.displacement_m, frame_id, msg.header.stamp), t, t)
+                    writer.write(predicted_pose_topic, pose_message(
+                        out.position_m, out.quaternion, frame_id, msg.header.stamp), t, t)
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        written = writer.close()
+    summary.dofs = predictor.system.dofs
+    summary.messages_written = written.message_count
+    summary.bytes = written.bytes
+    summary.elapsed_s = time.perf_counter() - start
+    return summary
+
+
+# ----------------------------------------------------------------------------- live
+
+
+@dataclass
+class LiveSummary:
+    """What :func:`replay_live` published."""
+
+    pose_topic: str
+    wrench_topic: str
+    published: int
+    total: int
+    duration_s: float            # wall time from the first to the last message
+    recorded_span_s: float       # log-time span of what was published
+    max_late_s: float            # worst lateness against the schedule
+    stopped: bool                # interrupted before the end
+
+
+def replay_live(node, input_path, *, rate: float = 1.0, pose_topic: str | None = None,
+                wrench_topic: str | None = None, subscribers: int = 1,
+                wait_s: float = 30.0, stop: threading.Event | None = None,
+                progress: Callable[[int, int], None] | None = None,
+                allow_incomplete: bool = False) -> LiveSummary:
+    """Republish the pose and wrench messages of a recording from ``node`` (rclpy).
+
+    Publishes on ``pose`` and ``wrench`` (relative to the node's namespace, remappable) the
+    recorded CDR bytes, unchanged (header stamps as recorded), at the recorded log times
+    relative to the first one, divided by ``rate``; first waits up to ``wait_s`` until each
+    topic has ``subscribers`` subscriptions. ``stop`` (an Event) ends it early. Raises
+    :class:`ReplayError` / :class:`~cdpr_dynamics.recording.base.RecordingError`.
+    """
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    if not (rate > 0.0 and math.isfinite(rate)):
+        raise ReplayError(f'--rate must be a positive number, got {rate}')
+    stop = stop or threading.Event()
+    input_path = resolve_input(input_path)
+    _, pose, wrench, total = inspect_input(input_path, pose_topic, wrench_topic, allow_incomplete)
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.VOLATILE)
+    publishers = {pose: node.create_publisher(PoseStamped, 'pose', qos),
+                  wrench: node.create_publisher(WrenchStamped, 'wrench', qos)}
+    try:
+        deadline = time.monotonic() + wait_s
+        while any(p.get_subscription_count() < subscribers for p in publishers.values()):
+            if stop.is_set():
+                return LiveSummary(publishers[pose].topic_name, publishers[wrench].topic_name,
+                                   0, total, 0.0, 0.0, 0.0, True)
+            if time.monotonic() > deadline:
+                missing = [p.topic_name for p in publishers.values()
+                           if p.get_subscription_count() < subscribers]
+                raise ReplayError(
+                    f'no subscriber on {", ".join(missing)} after {wait_s:g} s (wanted '
+                    f'{subscribers}): is dynamics_node running on this ROS_DOMAIN_ID?')
+            stop.wait(0.02)
+        published, first_log, first_wall, last_log, max_late = 0, None, None, None, 0.0
+        wall = time.monotonic()
+        for item in _input_stream(input_path, pose, wrench, 'log', allow_incomplete):
+            if first_log is None:
+                first_log, first_wall = item.log_time_ns, time.monotonic()
+            due = first_wall + (item.log_time_ns - first_log) * 1e-9 / rate
+            now = time.monotonic()
+            if due > now and stop.wait(due - now):
+                break
+            if stop.is_set():
+                break
+            max_late = max(max_late, time.monotonic() - due)
+            publishers[item.topic].publish(item.data)
+            published += 1
+            last_log = item.log_time_ns
+            if progress is not None:
+                progress(published, total)
+        wall = time.monotonic() - (first_wall if first_wall is not None else wall)
+        for publisher in publishers.values():   # reliable subscribers got everything
+            publisher.wait_for_all_acked(_duration(2.0))
+        return LiveSummary(publishers[pose].topic_name, publishers[wrench].topic_name,
+                           published, total, wall,
+                           ((last_log or 0) - (first_log or 0)) * 1e-9, max_late,
+                           stop.is_set())
+    finally:
+        for publisher in publishers.values():
+            node.destroy_publisher(publisher)
+
+
+def _duration(seconds: float):
+    from rclpy.duration import Duration
+    return Duration(nanoseconds=int(seconds * 1e9))
+
+
+# ----------------------------------------------------------------------------- comparison
+
+
+@dataclass
+class Predictions:
+    """The outputs of a replay or of a node recording, keyed by header stamp (ns)."""
+
+    displacement: dict = field(default_factory=dict)    # stamp -> (3,) m
+    length: dict = field(default_factory=dict)          # stamp -> (n,) m
+    tension: dict = field(default_factory=dict)         # stamp -> (n,) N
+    rejected: dict = field(default_factory=dict)        # (what, stamp) -> (kind, reason)
+    inputs: set = field(default_factory=set)            # stamps of the inputs
+
+
+def read_predictions(path, diagnostics_source: str | None = HARDWARE_ID) -> Predictions:
+    """Predictions of a file: every topic named ``predicted_displacement`` / ``cable_tensions``
+    (any namespace), and the per-input rejections on /diagnostics written by
+    ``diagnostics_source`` (None: ignore /diagnostics)."""
+    out = Predictions()
+    for item in read_messages(path):
+        base = item.topic.rsplit('/', 1)[-1]
+        msg = item.message
+        if item.type == DISPLACEMENT_TYPE and base == 'predicted_displacement':
+            out.displacement[stamp_to_ns(msg.header.stamp)] = read_displacement(msg)
+        elif item.type == TENSIONS_TYPE and base == 'cable_tensions':
+            length, tension = read_tensions(msg)
+            out.length[stamp_to_ns(msg.header.stamp)] = length
+            out.tension[stamp_to_ns(msg.header.stamp)] = tension
+        elif item.type in (POSE_TYPE, WRENCH_TYPE) and base in ('pose', 'wrench'):
+            out.inputs.add(stamp_to_ns(msg.header.stamp))
+        elif item.type == DIAGNOSTICS_TYPE and diagnostics_source is not None:
+            for status in msg.status:
+                if status.hardware_id != diagnostics_source:
+                    continue
+                values = {kv.key: kv.value for kv in status.values}
+                what = 'pose' if status.name.endswith('pose input') else 'wrench'
+                out.rejected[(what, int(values.get('stamp_ns', -1)))] = (
+                    values.get('kind', ''), status.message)
+    return out
+
+
+@dataclass
+class Comparison:
+    """Result of :func:`compare_outputs`: ``ok`` and the mismatches found, worst first."""
+
+    ok: bool
+    problems: list
+    worst: dict                  # quantity -> largest |difference| / peak of the reference
+    tolerance: dict              # quantity -> absolute tolerance used
+
+    def __str__(self) -> str:
+        if self.ok:
+            return 'match: ' + ', '.join(f'{k} worst {v:.2g} of peak'
+                                         for k, v in self.worst.items())
+        return '; '.join(self.problems[:5]) + (
+            f' (and {len(self.problems) - 5} more)' if len(self.problems) > 5 else '')
+
+
+def compare_outputs(reference: Predictions, candidate: Predictions, rtol: float = 1e-6,
+                    diagnostics: bool = True, extra_ok: bool = False) -> Comparison:
+    """Compare predictions by header stamp: each quantity within ``rtol`` times its peak in
+    ``reference`` (|u|, cable length, tension), the same stamps present (``extra_ok``: the
+    candidate may have outputs at stamps that are no input of the reference, e.g. a node's
+    start-up tensions), and, with ``diagnostics``, the same inputs rejected for the same kind
+    of reason."""
+    problems = []
+    worst, tolerance = {}, {}
+    for name in ('displacement', 'length', 'tension'):
+        ref, cand = getattr(reference, name), getattr(candidate, name)
+        peak = max((float(np.abs(v).max()) for v in ref.values() if np.size(v)), default=0.0)
+        atol = rtol * peak if peak > 0 else rtol
+        tolerance[name] = atol
+        missing = sorted(set(ref) - set(cand))
+        extra = sorted(set(cand) - set(ref))
+        if extra_ok:
+            extra = [s for s in extra if s in reference.inputs]
+        if missing:
+            problems.append(f'{name}: {len(missing)} of {len(ref)} stamps missing '
+                            f'(first {missing[0] * 1e-9:.6f} s)')
+        if extra:
+            problems.append(f'{name}: {len(extra)} unexpected stamps '
+                            f'(first {extra[0] * 1e-9:.6f} s)')
+        largest, where = 0.0, None
+        for stamp in sorted(set(ref) & set(cand)):
+            a, b = np.asarray(ref[stamp]), np.asarray(cand[stamp])
+            if a.shape != b.shape:
+                problems.append(f'{name} at {stamp * 1e-9:.6f} s: {b.size} values, '
+                                f'expected {a.size}')
+                continue
+            diff = float(np.abs(a - b).max()) if a.size else 0.0
+            if not math.isfinite(diff):
+                diff = math.inf
+            if diff > largest:
+                largest, where = diff, stamp
+        worst[name] = largest / peak if peak > 0 else largest
+        if largest > atol:
+            problems.insert(0, f'{name} differs by {largest:.3g} at {where * 1e-9:.6f} s '
+                               f'({largest / max(peak, 1e-300):.3g} of the peak {peak:.4g}; '
+                               f'tolerance {rtol:g} of the peak)')
+    if diagnostics:
+        ref_kinds = {k: v[0] for k, v in reference.rejected.items()}
+        cand_kinds = {k: v[0] for k, v in candidate.rejected.items()}
+        if ref_kinds != cand_kinds:
+            gone = sorted(set(ref_kinds.items()) - set(cand_kinds.items()))
+            new = sorted(set(cand_kinds.items()) - set(ref_kinds.items()))
+            problems.append(f'rejected inputs differ: {len(gone)} no longer rejected as before '
+                            f'{gone[:3]}, {len(new)} newly rejected {new[:3]}')
+    return Comparison(not problems, problems, worst, tolerance)
+
+
+def summary_lines(summary: ReplaySummary) -> Iterable[str]:
+    """Human-readable lines about a finished offline replay."""
+    rejected = ', '.join(f'{k} {v}' for k, v in sorted(summary.rejected.items())) or 'none'
+    yield (f'{summary.poses} poses ({summary.poses_accepted} accepted, {summary.rebuilds} '
+           f'rebuilds), {summary.wrenches} wrenches ({summary.wrenches_accepted} predictions); '
+           f'rejected: {rejected}')
+    if summary.skipped:
+        yield (f'skipped {summary.skipped} undecodable input message(s); the first: '
+               f'{summary.first_skipped}')
+    yield (f'{summary.method} model ({summary.dofs} DOFs), {summary.inputs} inputs in '
+           f'{summary.elapsed_s:.2f} s ({summary.messages_per_s:.0f} messages/s)')
+    yield (f'wrote {summary.messages_written} messages ({summary.bytes} bytes) to '
+           f'{summary.output_path.resolve()}')
+
+
+__all__ = [
+    'Comparison', 'InputHandler', 'LiveSummary', 'NodeOptions', 'Predictions', 'ReplayError',
+    'ReplaySummary', 'RecordingError', 'compare_outputs', 'find_input_topics', 'inspect_input',
+    'load_replay_config', 'read_predictions', 'rejection_message', 'replay_live',
+    'replay_offline', 'resolve_input', 'summary_lines',
+]

@@ -1,0 +1,52 @@
+"""cdpr_bench --quick runs every stage (no timing is asserted: this machine is shared)."""
+import json
+import subprocess
+
+import numpy as np
+
+from conftest import installed
+
+
+def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
+    out = subprocess.run([installed('cdpr_bench'), '--quick', '--json', str(tmp_path / 'b.json')],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    result = json.loads((tmp_path / 'b.json').read_text())
+    assert result['qp']['warm']['p50_s'] > 0
+    rows = {(r['method'], r['elements_per_cable']): r for r in result['models']}
+    assert not [r for r in rows.values() if 'error' in r]
+    assert {'spring', 'fem', 'catenary', 'catenary_exact', 'fem_sag', 'dsm'} <= \
+        {m for m, _ in rows}
+    row = rows[('fem', 16)]            # quick mode: the naive dense solve at n = 16 only
+    # the condensed FRF is the naive dense one, to round-off
+    assert row['naive_max_relative_difference'] < 1e-9
+    assert np.isfinite(row['naive_over_condensed'])
+    assert rows[('fem', 64)]['dofs'] == 1515
+    sizes = result['frf_sizes']        # quick mode: n = 16 and 64, interleaved
+    assert set(sizes['p50_s']) == {'16', '64'} and sizes['largest_over_smallest'] > 0
+    assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'catenary_exact',
+                                               'fem_sag_n16', 'fem_sag_n16_chord_statics'}
+    assert result['node_compute_per_wrench']['p99_ms'] > 0
+    modes = result['modes'][0]         # quick mode: fem 16, counted and by the eigensolver
+    assert modes['modes'] == 27 and modes['platform_modes'] == 3
+    assert modes['counted']['p50_s'] > 0 and modes['eigensolver']['p50_s'] > 0
+    replay = {r['method']: r for r in result['replay']}
+    assert set(replay) == {'spring', 'fem'} and all(r['inputs'] > 0 for r in replay.values())
+
+
+def test_compute_per_wrench_scales_its_load_to_what_the_cables_hold():
+    """The rigid 6-DOF robot holds less than 1000 N along z: the bench's wrench load halves
+    until both signs are feasible instead of failing on the first rejected wrench."""
+    from pathlib import Path
+
+    from cdpr_dynamics.cli.bench_node import compute_per_wrench
+    from cdpr_dynamics.analysis.config import load_settings
+    from cdpr_dynamics.analysis.live import LivePredictor
+    settings = load_settings(Path(__file__).parent / 'data' / 'rigid_cdpr.yaml')
+    result = compute_per_wrench(settings, n=300)
+    amplitude = result['amplitude_n']
+    assert amplitude < 1000.0 and result['p50_ms'] > 0
+    predictor = LivePredictor(settings)
+    held = [not predictor.wrench_reason((0.0, 0.0, sign * scale * amplitude))
+            for scale in (1.0, 2.0) for sign in (1.0, -1.0)]
+    assert held[:2] == [True, True] and not all(held[2:])   # twice as much is not held

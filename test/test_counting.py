@@ -1,0 +1,227 @@
+"""Modes by Wittrick-Williams counting (cdpr_dynamics.dynamics.modes) against the dense
+eigensolver.
+
+The reference is scipy.linalg.eigh of the global K, M (PlatformSystem.matrices), classified
+here by the definitions of the modes module's docstring: an independent path (no condensed
+stiffness, no counting). Within a repeated frequency the dense basis is arbitrary, so both
+sides are compared in the basis that diagonalises the platform energy M_pp in the eigenspace
+(the one :func:`modes` reports); sums over a repeated frequency are compared as sums.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from cdpr_dynamics.analysis.pipeline import build_system, equilibrium
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.dynamics.modes import (MIN_MODES, classify, mode_count, modes,
+                                          natural_frequencies)
+
+REPO = Path(__file__).resolve().parents[1]
+PAPER = load_settings(REPO / 'config' / 'paper_cdpr.yaml')
+RIGID = load_settings(REPO / 'test' / 'data' / 'rigid_cdpr.yaml')
+HEAVY = load_settings(REPO / 'config' / 'heavy_sag_6dof.yaml')
+OFF_CENTRE = np.array([0.35, -0.2, 1.0])        # unequal cable lengths and tensions
+SAME = 1e-7                                      # dense eigenvalues this close: one frequency
+
+
+def dense_modes(system, size: int):
+    """(frequency_hz, fraction, effective mass (k, nd), cable energy (k, ncab), groups) of
+    the ``size`` lowest modes by a dense solve, in the canonical basis of repeated ones."""
+    k, m = system.matrices(dense=True)
+    values, vectors = scipy.linalg.eigh(k, m)          # M-orthonormal
+    nd = system.platform_dofs
+    groups = _runs(values, lambda a, b: abs(b - a) <= SAME * abs(b))
+    basis = []
+    for start, stop in groups:
+        v = vectors[:, start:stop]
+        share, w = np.linalg.eigh(v[:nd].T @ m[:nd, :nd] @ v[:nd])
+        basis.append(v @ w[:, ::-1])                    # fractions descending
+    phi = np.concatenate(basis, axis=1)[:, :size]
+    fraction = np.einsum('ik,ij,jk->k', phi[:nd], m[:nd, :nd], phi[:nd])
+    effective = ((m @ phi)[:nd].T) ** 2
+    ncab = system.geometry.n_cables
+    per = system.assembly.interior_dofs // ncab
+    energy = np.stack([np.einsum('ik,ij,jk->k', phi[nd + c * per:nd + (c + 1) * per],
+                                 m[nd + c * per:nd + (c + 1) * per,
+                                   nd + c * per:nd + (c + 1) * per],
+                                 phi[nd + c * per:nd + (c + 1) * per])
+                       for c in range(ncab)], axis=1)
+    frequency = np.sqrt(np.clip(values[:size], 0, None)) / (2 * np.pi)
+    return frequency, fraction, effective, energy, [g for g in groups if g[0] < size]
+
+
+def _runs(values, same):
+    """(start, stop) of the runs of ``values`` whose neighbours are ``same``."""
+    runs, start = [], 0
+    for i in range(1, len(values) + 1):
+        if i == len(values) or not same(values[i - 1], values[i]):
+            runs.append((start, i))
+            start = i
+    return runs
+
+
+CASES = [
+    pytest.param(PAPER, None, 'fem', 8, id='paper-fem8'),
+    pytest.param(PAPER, None, 'fem_sag', 8, id='paper-fem_sag8'),
+    pytest.param(PAPER, OFF_CENTRE, 'fem', 8, id='unequal-fem8'),
+    pytest.param(PAPER, OFF_CENTRE, 'fem_sag', 6, id='unequal-fem_sag6'),
+    pytest.param(RIGID, None, 'fem', 6, id='rigid6dof-fem6'),
+    pytest.param(RIGID, np.array([0.2, 0.1, 1.1]), 'fem', 6, id='rigid6dof-moved-fem6'),
+    pytest.param(HEAVY, None, 'fem_sag', 8, id='heavy-sag-fem_sag8'),
+]
+
+
+@pytest.mark.parametrize('settings, position, method, n', CASES)
+def test_counted_modes_equal_the_dense_eigensolver(settings, position, method, n):
+    eq = equilibrium(settings, position, method=method)
+    system = build_system(settings, eq, method, n)
+    assert_equal_dense(settings, system, modes(system, settings.f_max_hz))
+
+
+def test_chains_equal_up_to_round_off_are_one_repeated_frequency(monkeypatch):
+    """fem_sag n = 64 at the chord statics (cdpr_bench's state): the pivots give the four
+    upper cables' equal clamped eigenvalues up to 7e-10 Hz apart, in two brackets, one cable's
+    where J does not rise. Taken as one frequency (modes.CLUSTER) they are classified by
+    counting, without the eigensolver it fell back to before (slower than it), as dense."""
+    from cdpr_dynamics.dynamics import modes as modes_module
+
+    def no_eigensolver(*args, **kwargs):
+        raise AssertionError('fell back to the eigensolver')
+    system = build_system(PAPER, equilibrium(PAPER), 'fem_sag', 64)
+    with monkeypatch.context() as patch:
+        patch.setattr(modes_module, '_eigen', no_eigensolver)
+        found = modes(system, PAPER.f_max_hz)
+    assert_equal_dense(PAPER, system, found)
+    assert found.frequency_hz.size == 27 and found.platform_hz.size == 3
+
+
+def assert_equal_dense(settings, system, found):
+    """``found`` (counted modes up to f_max) equals the dense solve: frequencies,
+    multiplicities, fractions, kinds, effective masses per frequency, the cable of a mode."""
+    size = found.frequency_hz.size
+    assert size >= MIN_MODES and found.shapes is None
+    f, fraction, effective, energy, groups = dense_modes(system, size)
+    np.testing.assert_allclose(found.frequency_hz, f, rtol=1e-8)
+    # every mode below f_max is there, and the first one above is not
+    assert found.frequency_hz[-1] <= settings.f_max_hz or size == MIN_MODES
+    k, m = system.matrices(dense=True)
+    above = np.sqrt(scipy.linalg.eigh(k, m, eigvals_only=True)[size]) / (2 * np.pi)
+    assert above > settings.f_max_hz or size == MIN_MODES
+    # multiplicities: the counted repeated frequencies are bit-identical, as many as dense's
+    counted = _runs(found.frequency_hz, lambda a, b: a == b)
+    assert [b - a for a, b in counted] == [b - a for a, b in groups]
+    np.testing.assert_allclose(found.platform_fraction, fraction, atol=1e-8)
+    assert found.kind == classify(fraction)
+    scale = np.diag(m)[:system.platform_dofs]
+    for start, stop in groups:
+        got = found.effective_mass[start:stop].sum(axis=0)
+        np.testing.assert_allclose(got, effective[start:stop].sum(axis=0),
+                                   atol=1e-8 * scale.max(), err_msg=f'modes {start}:{stop}')
+        if stop - start == 1 and found.kind[start] != 'platform':
+            top = np.sort(energy[start])[::-1]
+            if top[0] > 1.01 * top[1]:             # one cable clearly carries it (no tie)
+                assert found.cable[start] == np.argmax(energy[start]), start
+
+
+@pytest.mark.parametrize('settings, position, method, n', [
+    (PAPER, OFF_CENTRE, 'fem', 3), (PAPER, None, 'fem', 4), (PAPER, OFF_CENTRE, 'fem_sag', 3),
+    (RIGID, None, 'fem', 2)])
+def test_effective_masses_of_all_counted_modes_sum_to_the_platform_diagonal(
+        settings, position, method, n):
+    eq = equilibrium(settings, position, method=method)
+    system = build_system(settings, eq, method, n)
+    found = modes(system, count=system.dofs)
+    assert found.frequency_hz.size == system.dofs
+    _, mass = system.matrices(dense=True)
+    np.testing.assert_allclose(found.effective_mass.sum(axis=0),
+                               np.diag(mass)[:system.platform_dofs], rtol=1e-8)
+
+
+def test_paper_robot_repeated_frequencies_are_exact():
+    """Eight equal-length cables, four at each tension: at each string frequency 8 clamped
+    modes, 3 of them couple with the platform (a triple just below) and 5 leave it at rest
+    (exactly at the clamped-chain frequency, fraction 0); the platform triple at 32.4 Hz."""
+    eq = equilibrium(PAPER)
+    system = build_system(PAPER, eq, 'fem', 16)
+    found = modes(system, PAPER.f_max_hz)
+    sizes = [b - a for a, b in _runs(found.frequency_hz, lambda a, b: a == b)]
+    assert sizes == [3, 5, 3, 5, 3, 5, 3]
+    assert np.all(found.platform_fraction[3:8] == 0.0) and found.kind[3:8] == ('cable',) * 5
+    # the 5-fold frequency is the clamped chain's closed form (6k/m)(1 - cos)/(2 + cos)
+    cables = eq.cables
+    low = int(np.argmin(cables.tension_n))
+    k = cables.tension_n[low] / (cables.length_m[low] / 16)
+    mass = cables.mass_per_length_kg_m * cables.length_m[low] / 16
+    c = np.cos(np.pi / 16)
+    chain = np.sqrt(6 * k / mass * (1 - c) / (2 + c)) / (2 * np.pi)
+    np.testing.assert_allclose(found.frequency_hz[3:8], chain, rtol=1e-11)
+    np.testing.assert_allclose(found.platform_hz, 32.40, atol=0.01)
+
+
+@pytest.mark.parametrize('method, n', [('fem', 5), ('fem_sag', 5)])
+def test_the_count_is_the_number_of_dense_eigenvalues_below(method, n):
+    eq = equilibrium(PAPER, OFF_CENTRE, method=method)
+    system = build_system(PAPER, eq, method, n)
+    k, m = system.matrices(dense=True)
+    values = scipy.linalg.eigh(k, m, eigvals_only=True)
+    omega = np.sqrt(np.concatenate([np.linspace(1.0, 2e4, 60) ** 2,
+                                    0.5 * (values[:-1] + values[1:])]))
+    expected = np.searchsorted(values, omega ** 2)
+    np.testing.assert_array_equal(mode_count(system, omega), expected)
+
+
+def test_natural_frequencies_are_the_modes_frequencies():
+    eq = equilibrium(PAPER, OFF_CENTRE)
+    system = build_system(PAPER, eq, 'fem', 12)
+    found = modes(system, 40.0)
+    np.testing.assert_array_equal(natural_frequencies(system, 0, 40.0), found.frequency_hz)
+    # another bracket (5 modes, no f_max), the same frequencies to the tolerance (1e-9 Hz)
+    np.testing.assert_allclose(natural_frequencies(system, 5), found.frequency_hz[:5], atol=2e-9,
+                               rtol=0)
+    # the dense path (shapes) classifies alike
+    dense = modes(system, 40.0, shapes=True)
+    np.testing.assert_allclose(dense.frequency_hz, found.frequency_hz, rtol=1e-9)
+    assert dense.kind == found.kind and dense.shapes.shape == (system.dofs, found.kind.__len__())
+
+
+@pytest.fixture(scope='module')
+def paper_dsm():
+    eq = equilibrium(PAPER, OFF_CENTRE)
+    return eq, modes(build_system(PAPER, eq, 'dsm'), PAPER.f_max_hz)
+
+
+def test_dsm_modes_are_the_limit_of_fem(paper_dsm):
+    """Unequal cables (off centre): fem's frequencies converge to dsm's as n^-2, and so do
+    its platform fractions (measured: 0.155, 0.050, 0.013 at n = 16, 32, 64, largest on the
+    platform mode at 31.4 Hz that a cable mode nearby mixes with); its effective masses as
+    n^-1 (the end nodes' share mu l/3 per cable of the platform block)."""
+    eq, exact = paper_dsm
+    errors, shares = [], []
+    for n in (16, 32, 64):
+        fem = modes(build_system(PAPER, eq, 'fem', n), PAPER.f_max_hz)
+        assert fem.frequency_hz.size == exact.frequency_hz.size
+        errors.append(np.abs(fem.frequency_hz / exact.frequency_hz - 1).max())
+        shares.append(np.abs(fem.platform_fraction - exact.platform_fraction).max())
+    ratios = np.array(errors[:-1]) / np.array(errors[1:])
+    assert np.all((ratios > 3.8) & (ratios < 4.2)), (errors, ratios)
+    assert errors[-1] < 1e-3
+    assert shares[-1] < 0.02 and shares[1] / shares[2] > 3.5, shares
+    assert fem.kind == exact.kind
+    np.testing.assert_allclose(fem.effective_mass.sum(axis=0), exact.effective_mass.sum(axis=0),
+                               rtol=5e-4)
+
+
+def test_dsm_platform_modes_carry_the_platform_mass(paper_dsm):
+    eq, exact = paper_dsm
+    platform = np.array([k == 'platform' for k in exact.kind])
+    assert platform.sum() == 3 and np.all(exact.cable[platform] == -1)
+    assert np.all(exact.cable[~platform] >= 0)
+    # continuous cables: M_pp is the point mass alone, and the modes below 40 Hz hold nearly
+    # all of it (the rest is in the infinitely many cable modes above)
+    total = exact.effective_mass.sum(axis=0)
+    assert np.all(exact.effective_mass >= 0)
+    assert np.all((total > 0.99 * PAPER.robot.mass_kg) & (total < PAPER.robot.mass_kg))
