@@ -25,7 +25,7 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'dynamics_node = cdpr_dynamics.ros.node:main',
+            'dynamics_node = cdpr_dynamics.ros.process:main',
             'cdpr_analyze = cdpr_dynamics.cli.analyze:main',
             'cdpr_bench = cdpr_dynamics.cli.bench:main',
             'cdpr_record = cdpr_dynamics.cli.record:main',

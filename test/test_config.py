@@ -25,7 +25,7 @@ from cdpr_dynamics.analysis.config import (MAX_CONFIG_BYTES, MAX_CONFIG_DEPTH, M
                                            NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS,
                                            ConfigError, check_names, key_matches, load_settings,
                                            read_params_file, settings_from_params)
-from cdpr_dynamics.ros.node import _check_command_line
+from cdpr_dynamics.ros.parameters import check_command_line as _check_command_line
 from conftest import PAPER_CONFIG, REPO, installed, wait_until, write_config
 
 RIGID_CONFIG = REPO / 'test' / 'data' / 'rigid_cdpr.yaml'
@@ -171,7 +171,7 @@ NAMESPACES = ['/', '/ns', '/a/ns']
 RCLPY_PROBE = r'''
 import json, sys, rclpy
 from rclpy.node import Node
-from cdpr_dynamics.ros.node import _check_command_line
+from cdpr_dynamics.ros.parameters import check_command_line as _check_command_line
 keys, namespaces, rules, params = json.loads(sys.argv[1])
 matches = {}
 for ns in namespaces:

@@ -869,7 +869,7 @@ INPUT_LOOP = r"""
 import sys, threading, time
 import rclpy
 from geometry_msgs.msg import PoseStamped, WrenchStamped
-from cdpr_dynamics.ros.node import InputLoop, LOOP_WAIT_S
+from cdpr_dynamics.ros.rclpy_compat import InputLoop, LOOP_WAIT_S
 
 rclpy.init()
 node = rclpy.create_node('loop_test', start_parameter_services=False)

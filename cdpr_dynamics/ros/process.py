@@ -1,22 +1,37 @@
-"""Run ``dynamics_node`` as a child process in an isolated ROS environment.
+"""The node's process: ``dynamics_node``'s ``main`` (command line, the two threads, signals and
+the stop watchdog), and how tools and tests start it as a child in an isolated ROS environment.
 
-Used by ``cdpr_demo``, the benchmark and the DDS tests: a ROS domain id of their own (reserved
-with a lock file so parallel runs on one machine do not share a domain), localhost-only
-discovery, logs in a folder of their own, the venv's ament prefix. ROS-free (no rclpy import).
+The node runs in two threads: the main thread takes pose and wrench alone
+(:class:`~cdpr_dynamics.ros.rclpy_compat.InputLoop`), a services thread runs an executor for
+parameters, ``frequency_response``, the worker's answers and the diagnostics timer. SIGINT and
+SIGTERM end the process with status 0 within ``STOP_DEADLINE_S`` (:class:`Stopper`); a bad
+configuration exits 1 with one line.
+
+Children (``cdpr_demo``, the benchmark, the DDS tests) get a ROS domain id of their own
+(reserved with a lock file so parallel runs on one machine do not share a domain),
+localhost-only discovery, logs in a folder of their own, the venv's ament prefix.
+
+Importing this module does not import rclpy (tools that start a node need not pay for it).
 """
 from __future__ import annotations
 
+import _thread
 import fcntl
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 LOCK_DIR = Path(tempfile.gettempdir()) / 'cdpr_dynamics_domains'
+STOP_DEADLINE_S = 0.8     # after SIGINT/SIGTERM the process ends within this, cleanly or not
+SWITCH_INTERVAL_S = 0.0005   # the GIL changes hands at least this often (Python's default,
+#                              5 ms, would let the services thread hold a wrench that long)
 
 
 class DomainReservation:
@@ -112,9 +127,9 @@ def console_script(name: str) -> Path | None:
 
 def node_command() -> list[str]:
     """How to start ``dynamics_node``: its console script (:func:`console_script`), or
-    ``python -m cdpr_dynamics.ros.node``."""
+    ``python -m cdpr_dynamics.ros.process``."""
     path = console_script('dynamics_node')
-    return [str(path)] if path else [sys.executable, '-m', 'cdpr_dynamics.ros.node']
+    return [str(path)] if path else [sys.executable, '-m', 'cdpr_dynamics.ros.process']
 
 
 def start_node(params_file, env: dict, parameters: dict | None = None, stdout=None,
@@ -165,3 +180,196 @@ def wait_until(condition, timeout_s: float, step=None, interval_s: float = 0.01)
             step()
         else:
             time.sleep(interval_s)
+
+
+# ------------------------------------------------------------- the node's own process
+
+USAGE = """\
+usage: dynamics_node [-h] --ros-args --params-file ROBOT.yaml [-p NAME:=VALUE ...]
+                     [-r pose:=TOPIC] [-r wrench:=TOPIC] [-r __ns:=/NAMESPACE]
+
+Live vibration prediction of a cable-driven parallel robot: ROS 2 node 'cdpr_dynamics'
+(subscribes pose and wrench; publishes predicted_displacement, cable_tensions and
+/diagnostics; serves frequency_response).
+
+  ros2 run cdpr_dynamics dynamics_node --ros-args --params-file {config}
+
+The params file describes the robot (anchors, mass, cables, tension limits: no defaults) and
+may set the numerical settings (model, damping, frf, newmark, node: documented defaults). Key
+its section '/**:' (any namespace) or 'cdpr_dynamics:'. A name not in the parameter table is
+an error. The table (names, units, defaults, ranges) is in README.md, section Configuration,
+and in cdpr_dynamics/analysis/config.py (PARAMETERS); on a running node: ros2 param describe
+/cdpr_dynamics NAME. Ctrl-C or SIGTERM stops it; a bad configuration exits 1 with one line.
+"""
+
+
+def main(args=None):
+    """Run the node until Ctrl-C or SIGTERM; a bad configuration exits 1 with one line.
+
+    The signal handlers come first, before the heavy imports: a signal at any moment after the
+    start ends the process with status 0."""
+    stopper = Stopper()
+    try:
+        status = _run(stopper, sys.argv if args is None else args)
+    except Stopped:
+        status = 0
+    if stopper.signalled:
+        # stopped by a signal: nothing is left to do, and the interpreter's own finalisation
+        # (seconds under load, with the default signal dispositions back) is skipped
+        stopper.exit(status)
+    return status
+
+
+def _run(stopper, argv) -> int:
+    from cdpr_dynamics.analysis.config import ConfigError, default_config_path
+    from cdpr_dynamics.ros.parameters import check_command_line, io_arguments
+    from msg_adapters.inputs import first_line
+    try:
+        help_asked, args = check_command_line(argv)
+        if help_asked:
+            try:
+                config = default_config_path()
+            except ConfigError:
+                config = 'config/paper_cdpr.yaml'
+            print(USAGE.format(config=config), end='')
+            return 0
+    except ConfigError as exc:
+        print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
+        return 1
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from cdpr_dynamics.ros.node import DynamicsNode
+    from cdpr_dynamics.ros.rclpy_compat import InputLoop
+    try:   # rclpy's own signal handlers would shut the context down under a running callback
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # e.g. a parameter file rcl cannot parse
+        print(f'dynamics_node: error: {first_line(exc)}', file=sys.stderr)
+        return 1
+    node = None
+    status = 0
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    services = SingleThreadedExecutor()
+    failed: list[BaseException] = []
+    thread = None
+    try:
+        node = DynamicsNode(io_arguments=io_arguments(args))
+        services.add_node(node)
+        thread = threading.Thread(target=_serve, args=(services, failed), name='cdpr_services',
+                                  daemon=True)
+        thread.start()
+        try:                                  # the pose and wrench path, alone
+            lean = InputLoop(node.context, (node.pose_sub, node.wrench_sub),
+                             stop=lambda: stopper.signalled)
+        except AttributeError:                # an rclpy without the wait set API
+            lean = SingleThreadedExecutor()
+            lean.add_node(node.io)
+        lean.spin()
+    except (Stopped, KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as exc:  # noqa: BLE001 - one line, status 1 (a signal that lands inside
+        failed.append(exc)    # a pybind11 call comes out as its RuntimeError: a stop, below)
+    finally:
+        if failed and not stopper.signalled:
+            print(f'dynamics_node: error: {first_line(failed[0])}', file=sys.stderr)
+            status = 1
+        stopper.stopping(status)
+        try:
+            services.shutdown(timeout_sec=0.2)
+            if thread is not None:
+                thread.join(0.2)
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
+        except Exception:  # noqa: BLE001 - stopping anyway; a half-torn callback may object
+            pass
+        stopper.done()
+    return status
+
+
+def _serve(executor, failed: list) -> None:
+    """The services thread: parameters, frequency_response, the worker's answers, the
+    diagnostics timer. A callback that raises ends the node as one in the main thread would
+    (``failed`` keeps the error for :func:`main`)."""
+    from rclpy.executors import ExternalShutdownException
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
+    except Exception as exc:  # noqa: BLE001 - reported by main with one line, status 1
+        failed.append(exc)
+        _thread.interrupt_main()
+
+
+class Stopped(BaseException):
+    """Raised in the main thread by the first SIGINT or SIGTERM: it unwinds whatever runs (a
+    burst of wrenches, a long frequency_response call) straight to :func:`main`. A
+    BaseException, so the callbacks' ``except Exception`` guards let it through."""
+
+
+class Stopper:
+    """Clean shutdown on SIGINT and SIGTERM, at any moment, within ``STOP_DEADLINE_S``.
+
+    The first signal raises :class:`Stopped` in the main thread (Python runs signal handlers
+    there, between bytecodes); later ones are ignored (``ros2 launch`` sends two SIGINTs
+    close together). A watchdog thread, woken by :func:`signal.set_wakeup_fd` the moment a
+    signal arrives (even while the main thread is inside a long C call), ends the process
+    with status 0 if the orderly shutdown has not finished by the deadline.
+    """
+
+    def __init__(self):
+        self._signal = None
+        self._finished = threading.Event()
+        self._read, self._write = socket.socketpair()
+        self._write.setblocking(False)
+        signal.set_wakeup_fd(self._write.fileno(), warn_on_full_buffer=False)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+        threading.Thread(target=self._watchdog, name='stop_watchdog', daemon=True).start()
+
+    def _on_signal(self, signum, frame):
+        if self._signal is None:
+            self._signal = signum
+            raise Stopped(signum)
+
+    @property
+    def signalled(self) -> bool:
+        return bool(self._signal)
+
+    def stopping(self, status: int = 0) -> None:
+        """The shutdown is under way: every later signal is ignored, and the watchdog ends the
+        process with ``status`` if the shutdown takes longer than ``STOP_DEADLINE_S``."""
+        self._status = status
+        if self._signal is None:
+            self._signal = 0
+        try:
+            self._write.send(b'\0')       # arm the watchdog (a signal has armed it already)
+        except OSError:
+            pass
+
+    def done(self) -> None:
+        self._finished.set()
+
+    def exit(self, status: int) -> None:
+        """End the process now with ``status`` (streams flushed)."""
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001
+                pass
+        os._exit(status)
+
+    _status = 0
+
+    def _watchdog(self):
+        try:
+            self._read.recv(1)
+        except OSError:
+            return
+        if not self._finished.wait(STOP_DEADLINE_S):
+            self.exit(self._status)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
