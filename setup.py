@@ -33,6 +33,7 @@ setup(
             'cdpr_tradeoff = cdpr_dynamics.cli.tradeoff:main',
             'cdpr_replay = cdpr_dynamics.cli.replay:main',
             'cdpr_workspace = cdpr_dynamics.cli.workspace:main',
+            'cdpr_calibrate = cdpr_dynamics.cli.calibrate:main',
         ],
     },
 )
