@@ -7,9 +7,9 @@ POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
 IMU_TYPE = 'sensor_msgs/msg/Imu'
 
 
-def stamp_s(msg) -> float:
-    """The header stamp (s); 0 for an unstamped message."""
-    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+def stamp_ns(msg) -> int:
+    """The header stamp (ns); 0 for an unstamped message."""
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
 def pose_row(msg) -> np.ndarray:

@@ -679,7 +679,6 @@ def _damping_summary(table, flat, new_flat, problem, before, after, rows_all, is
     return out
 
 
-
 # --------------------------------------------------------------------------- the YAML
 
 def _flow(value) -> str:

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.signal
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 #: Record kinds: a pose (x y z qx qy qz qw per sample) or an IMU (wx wy wz ax ay az).
@@ -286,7 +285,7 @@ def _frequency_damping(pole: complex, var_sigma: float, var_omega: float, covar:
 
 
 def direction(residue: np.ndarray, pole: complex, kind: str) -> np.ndarray:
-    """The mode's direction (6,) from its residues over the record's channels."""
+    """A mode's unit vector (6,) over x y z rx ry rz from its residues on the channels."""
     residue = np.asarray(residue, dtype=complex).copy()
     if kind == 'imu':       # (angular velocity, acceleration) -> (rotation, translation)
         residue = np.concatenate([residue[3:] / pole ** 2, residue[:3] / pole])
@@ -308,8 +307,8 @@ def identify_decay(t: np.ndarray, y: np.ndarray, kind: str, options: Options,
     ys = y[:, used] / scale[used]
     c = ys.shape[1]
     top = min(2 * options.max_modes + 10, 60)
-    block_rows = max(int(math.ceil(1.2 * top / c)) + 2, int(math.ceil(0.5 / (options.f_min_hz
-                                                                            * dt) / 4)))
+    period_rows = int(math.ceil(0.125 / (options.f_min_hz * dt)))   # 1/8 of the longest period
+    block_rows = max(int(math.ceil(1.2 * top / c)) + 2, period_rows)
     block_rows = min(block_rows, ys.shape[0] // 3)
     orders = list(range(max(4, top // 3) + (max(4, top // 3) % 2), top + 1, 2))
     per_order = era_poles(ys, dt, orders, block_rows)

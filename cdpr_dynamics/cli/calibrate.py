@@ -168,9 +168,9 @@ def fit_main(args) -> int:
     result = fit(flat, table, args.fit, args.holdout, args.seed)
     report = result.report
     changed = {name: result.flat[name] for name in result.values}
-    if 'damping.modal_ratio' in result.flat and result.flat['damping.modal_ratio'] != \
-            flat.get('damping.modal_ratio', 0.0) and any(n in DAMPING_PARAMETERS
-                                                        for n in result.values):
+    ratio = result.flat.get('damping.modal_ratio', 0.0)
+    if ratio != flat.get('damping.modal_ratio', 0.0) and \
+            any(n in DAMPING_PARAMETERS for n in result.values):
         changed['damping.modal_ratio'] = result.flat['damping.modal_ratio']
     text = Path(args.config).read_text(encoding='utf-8')
     Path(args.output).write_text(calibrated_yaml(text, changed, result.values),

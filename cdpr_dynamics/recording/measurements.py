@@ -7,31 +7,33 @@ import numpy as np
 
 from cdpr_dynamics.recording.base import RecordingError
 from cdpr_dynamics.recording.reader import read_messages, recording_info
-from msg_adapters.samples import IMU_TYPE, POSE_TYPE, imu_row, pose_row, stamp_s
+from msg_adapters.samples import IMU_TYPE, POSE_TYPE, imu_row, pose_row, stamp_ns
 
 DEFAULT_TOPIC = '/measured_pose'
 
 
 @dataclass(frozen=True)
 class Samples:
-    """A topic's samples: kind ('pose' or 'imu'), times t_s (n,), rows (n, 7 or 6), and for
-    an IMU the poses of a pose topic interpolated at its times (or None)."""
+    """A topic's samples: kind ('pose' or 'imu'), times t_s (n,) from the first stamp
+    ``origin_ns`` (header stamps; arrival where unstamped), rows (n, 7 or 6), and for an IMU
+    the poses of a pose topic interpolated at its times (or None)."""
 
     topic: str
     kind: str
     t_s: np.ndarray
     rows: np.ndarray
     poses: np.ndarray | None = None
+    origin_ns: int = 0
 
 
 def _series(path, topic: str, type_name: str):
     times, rows = [], []
     convert = pose_row if type_name == POSE_TYPE else imu_row
     for record in read_messages(path, {topic: type_name}):
-        stamp = stamp_s(record.message)
-        times.append(stamp if stamp > 0 else record.log_time_ns * 1e-9)
+        stamp = stamp_ns(record.message)
+        times.append(stamp if stamp > 0 else record.log_time_ns)
         rows.append(convert(record.message))
-    return np.array(times), np.array(rows).reshape(len(rows), -1)
+    return np.array(times, dtype=np.int64), np.array(rows).reshape(len(rows), -1)
 
 
 def read_samples(path, topic: str | None = None) -> Samples:
@@ -58,14 +60,17 @@ def read_samples(path, topic: str | None = None) -> Samples:
     if types[name] not in (POSE_TYPE, IMU_TYPE):
         raise RecordingError(f'{path}: topic {name} is {types[name]}, not {POSE_TYPE} or '
                              f'{IMU_TYPE}')
-    t, rows = _series(path, name, types[name])
+    t_ns, rows = _series(path, name, types[name])
+    origin = int(t_ns.min()) if t_ns.size else 0
+    t = (t_ns - origin) * 1e-9
     if types[name] == POSE_TYPE:
-        return Samples(name, 'pose', t, rows)
+        return Samples(name, 'pose', t, rows, origin_ns=origin)
     pose_topics = [n for n, k in usable.items() if k == POSE_TYPE]
     poses = None
     if pose_topics:
-        pt, prow = _series(path, pose_topics[0], POSE_TYPE)
+        pt_ns, prow = _series(path, pose_topics[0], POSE_TYPE)
+        pt = (pt_ns - origin) * 1e-9
         if pt.size:
             order = np.argsort(pt)
             poses = np.stack([np.interp(t, pt[order], c) for c in prow[order].T], axis=1)
-    return Samples(name, 'imu', t, rows, poses)
+    return Samples(name, 'imu', t, rows, poses, origin)

@@ -1,0 +1,182 @@
+"""cdpr_calibrate identify: synthetic free decays of the package's own model, through MCAP.
+
+A decay is the package's Newmark time history of the platform (spring model of the rigid
+robot, cables softened so its six modes lie at 2-15 Hz, below the 50 Hz Nyquist frequency of a
+100 Hz record) from an initial displacement, with Rayleigh damping; the truth is the
+eigensolution of the same K and M and the damping's modal ratios.
+"""
+import numpy as np
+import pytest
+import scipy.linalg
+
+from cdpr_dynamics.analysis.config import read_params_file, settings_from_params
+from cdpr_dynamics.analysis.identification import Options, identify_record
+from cdpr_dynamics.analysis.modes_table import read_modes_table
+from cdpr_dynamics.analysis.pipeline import build_system, equilibrium
+from cdpr_dynamics.cli.calibrate import main
+from cdpr_dynamics.dynamics.system import Newmark, rayleigh_from_modal_ratio
+from cdpr_dynamics.mechanics.robot import (matrix_to_quaternion, quaternion_to_matrix,
+                                           rotation_vector_quaternion)
+from cdpr_dynamics.recording.writer import RecordingWriter
+from msg_adapters.pose import pose_message
+from msg_adapters.validation import ns_to_stamp
+
+from test_calibration import RIGID
+
+POSE = 'geometry_msgs/msg/PoseStamped'
+T0_NS = 1_700_000_000 * 10**9
+U0 = np.array([0.004, -0.003, 0.005, 0.012, -0.010, 0.015])
+
+
+def soft_robot():
+    flat = read_params_file(RIGID)
+    flat.update({'model.method': 'spring', 'cable.youngs_modulus_pa': 2.01e8})
+    return settings_from_params(flat)
+
+
+def decay(settings, position, u0=U0, duration_s=15.0, ratio=0.02, dt_s=1e-3, rate_hz=100.0):
+    """(t, u (n, 6), v, a, natural frequencies, damping ratios, mode shapes) of the free decay
+    from ``u0`` at ``position``, sampled at ``rate_hz``."""
+    system = build_system(settings, equilibrium(settings, np.asarray(position), np.eye(3)))
+    k, m = system.static_stiffness(), system.platform_mass
+    lam, phi = scipy.linalg.eigh(k, m)
+    f = np.sqrt(lam) / (2 * np.pi)
+    damping = rayleigh_from_modal_ratio(ratio, f[0], f[-1])
+    integrator = Newmark(k, m, damping, dt_s)
+    integrator.u = u0
+    integrator.acc = np.linalg.solve(m, -k @ u0)        # at rest: no damping force
+    every = int(round(1.0 / (rate_hz * dt_s)))
+    out = [np.stack([integrator.u, integrator.v, integrator.acc])]
+    zero = np.zeros(6)
+    for i in range(1, int(round(duration_s / dt_s)) + 1):
+        integrator.step(zero)
+        if i % every == 0:
+            out.append(np.stack([integrator.u, integrator.v, integrator.acc]))
+    states = np.array(out)
+    t = np.arange(len(states)) / rate_hz
+    # the average-acceleration rule rings at w' with tan(w' dt / 2) = w dt / 2 (its period
+    # elongation, 3e-4 at 9 Hz here): the frequency the record holds
+    f_record = np.arctan(np.pi * f * dt_s) / (np.pi * dt_s)
+    return t, states[:, 0], states[:, 1], states[:, 2], f_record, damping.ratios(f), phi
+
+
+def pose_samples(position, u, noise_m, rng):
+    """(n, 7) poses of the platform displaced by u (translations, small rotations) plus
+    white noise of ``noise_m`` (m, and rad on the rotations)."""
+    u = u + noise_m * rng.standard_normal(u.shape)
+    quats = [matrix_to_quaternion(quaternion_to_matrix(rotation_vector_quaternion(th)))
+             for th in u[:, 3:]]
+    return np.hstack([position + u[:, :3], quats])
+
+
+def write_poses(path, t_s, poses, topic='/measured_pose'):
+    with RecordingWriter(path) as writer:
+        writer.add_topic(topic, POSE)
+        for t, row in zip(t_s, poses):
+            ns = T0_NS + int(round(t * 1e9))
+            writer.write(topic, pose_message(row[:3], row[3:], 'world', ns_to_stamp(ns)), ns)
+
+
+def mac(a, b):
+    return float(a @ b) ** 2 / float(a @ a) / float(b @ b)
+
+
+def check_modes(modes, f_true, zeta_true, phi=None, count=5):
+    """Every true mode among the ``count`` lowest found within 0.5 % in frequency and 20 % in
+    damping (and its direction where ``phi``), nothing else."""
+    found = np.array([m.frequency_hz for m in modes])
+    assert found.size >= count and found.size <= len(f_true), found
+    for j in range(count):
+        i = int(np.argmin(np.abs(found - f_true[j])))
+        mode = modes[i]
+        assert abs(mode.frequency_hz / f_true[j] - 1) < 0.005, (mode, f_true[j])
+        assert abs(mode.damping_ratio / zeta_true[j] - 1) < 0.2, (mode, zeta_true[j])
+        assert 0 < mode.std_hz < 0.01 * mode.frequency_hz
+        assert abs(mode.frequency_hz - f_true[j]) < 5 * mode.std_hz + 1e-4 * f_true[j]
+        if phi is not None:
+            assert mac(mode.direction, phi[:, j]) > 0.9
+
+
+def test_free_decay_in_mcap_identified(tmp_path, capsys):
+    settings = soft_robot()
+    position = np.array([0.1, -0.05, 1.3])
+    t, u, _, _, f, zeta, phi = decay(settings, position)
+    rng = np.random.default_rng(0)
+    path = tmp_path / 'decay.mcap'
+    write_poses(path, t, pose_samples(position, u, 1e-4, rng))
+    out = tmp_path / 'modes.csv'
+    assert main(['identify', str(path), '--output', str(out), '--f-min', '1']) == 0
+    table = read_modes_table(out)
+    assert set(table.pose_id.tolist()) == {0}
+    assert np.abs(table.pose[0, :3] - position).max() < 1e-3
+    result = identify_record(t, pose_samples(position, u, 1e-4, np.random.default_rng(0)),
+                             options=Options(f_min_hz=1.0))
+    (stretch,) = result.stretches
+    assert np.allclose(table.frequency_hz, [m.frequency_hz for m in stretch.modes], rtol=1e-8)
+    check_modes(stretch.modes, f, zeta, phi)
+
+
+def test_messy_record_motion_gaps_and_large_oscillation():
+    """Starts mid-motion, drops 3 % of its samples and 0.4 s at once, moves to a second pose;
+    the first decay starts larger than --max-amplitude."""
+    settings = soft_robot()
+    rng = np.random.default_rng(5)
+    a, b = np.array([0.0, 0.0, 1.25]), np.array([0.15, 0.1, 1.2])
+    t1, u1, _, _, f1, z1, _ = decay(settings, a, U0 * [25, 25, 25, 1, 1, 1], duration_s=15.0)
+    t2, u2, _, _, f2, z2, _ = decay(settings, b, U0, duration_s=12.0)
+    ramp_t = np.arange(0, 1.5, 0.01)
+    start = a - np.array([0.3, 0.0, 0.0])
+    ramp = start + (a - start) * np.sin(0.5 * np.pi * (ramp_t + 0.5) / 2.0)[:, None] ** 2
+    move_t = np.arange(0, 2.0, 0.01)
+    move = a + (b - a) * (0.5 - 0.5 * np.cos(np.pi * move_t / 2.0))[:, None]
+    still = np.tile([0.0, 0.0, 0.0, 1.0], (len(ramp_t), 1))
+    parts = [(ramp_t, np.hstack([ramp, still])),
+             (t1, pose_samples(a, u1, 1e-4, rng)),
+             (move_t, np.hstack([move, np.tile([0.0, 0.0, 0.0, 1.0], (len(move_t), 1))])),
+             (t2, pose_samples(b, u2, 1e-4, rng))]
+    times, rows, offset = [], [], 0.0
+    for t, r in parts:
+        times.append(t + offset)
+        rows.append(r)
+        offset += t[-1] + 0.01
+    t, rows = np.concatenate(times), np.concatenate(rows)
+    keep = rng.random(t.size) > 0.03
+    keep[(t > 11.0) & (t < 11.4)] = False
+    result = identify_record(t[keep], rows[keep], options=Options(f_min_hz=1.0))
+    reasons = ' | '.join(r for _, _, r in result.skipped)
+    assert 'moving' in reasons and 'gap of 0.4' in reasons and 'larger than 0.1 m' in reasons
+    assert result.filled_samples > 0.02 * t.size
+    assert len(result.stretches) == 3          # the first decay split at the gap
+    # after the gap (8 s into the decay) the modes above 9 Hz have died out
+    expected = ((a, f1, z1, 4), (a, f1, z1, 3), (b, f2, z2, 4))
+    for stretch, (where, f, z, count) in zip(result.stretches, expected):
+        assert np.abs(stretch.pose[:3] - where).max() < 2e-3
+        check_modes(stretch.modes, f, z, count=count)
+    assert result.stretches[0].start_s > 1.5       # not in the motion it started in
+
+
+def test_imu_record_identified():
+    """Angular velocity and acceleration of the same decay: same modes, directions too."""
+    settings = soft_robot()
+    position = np.array([0.1, -0.05, 1.3])
+    t, _, v, acc, f, zeta, phi = decay(settings, position)
+    rng = np.random.default_rng(2)
+    samples = np.hstack([v[:, 3:], acc[:, :3]])
+    samples += 0.01 * np.abs(samples).max(axis=0) * rng.standard_normal(samples.shape)
+    poses = np.tile(np.concatenate([position, [0.0, 0.0, 0.0, 1.0]]), (t.size, 1))
+    result = identify_record(t, samples, 'imu', Options(f_min_hz=1.0), poses)
+    (stretch,) = result.stretches
+    assert np.allclose(stretch.pose[:3], position)
+    check_modes(stretch.modes, f, zeta, phi)
+
+
+@pytest.mark.parametrize('args, message', [
+    (['--topic', '/nothing'], 'no topic /nothing'),
+    (['--f-min', '-1'], '--f-min must be positive'),
+])
+def test_identify_errors_are_one_line(tmp_path, capsys, args, message):
+    path = tmp_path / 'short.mcap'
+    write_poses(path, np.arange(5) * 0.01, np.tile([0, 0, 1.25, 0, 0, 0, 1.0], (5, 1)))
+    code = main(['identify', str(path), '--output', str(tmp_path / 'm.csv')] + args)
+    err = capsys.readouterr().err
+    assert code == 1 and message in err and len(err.strip().splitlines()) == 1, err
