@@ -27,8 +27,9 @@ def test_constant_wrench_settles_to_static_deflection(settings):
 
 
 def test_zero_order_hold_integrates_the_previous_wrench(settings):
-    """Advancing to t_(k+1) uses the wrench of t_k over the interval, in dt sub-steps."""
-    predictor = LivePredictor(settings)
+    """Advancing to t_(k+1) uses the wrench of t_k over the interval, in dt sub-steps (the
+    linear model: -5000 N slackens cables)."""
+    predictor = LivePredictor(settings, slack='linear')
     system = predictor.system
     k, m = system.matrices()
     reference = Newmark(k, m, Damping(settings.damping_mass_factor,

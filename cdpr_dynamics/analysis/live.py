@@ -11,7 +11,18 @@ offline replay and the live node give the same numbers by construction.
   ``floor((t_{k+1} - t_k)/dt)`` Newmark steps of ``newmark.dt_s`` (the remainder carries over),
   at most ``max_steps_per_wrench`` of them (the rest of a longer interval is dropped, the state
   kept), and returns the centroid's displacement from equilibrium at ``t_{k+1}``. The state of
-  motion carries over pose updates and model changes (:func:`carry_state`).
+  motion carries over pose updates and model changes (:func:`carry_state`). An interval of more
+  than ``max(CLOSED_FORM_STEPS, dofs)`` steps is stepped in closed form
+  (:class:`~cdpr_dynamics.dynamics.held_load.HeldLoadSteps`: the same state, at a cost that does
+  not grow with the interval) where the model has at most ``held_load.MAX_DOFS`` DOFs.
+* Slack (``slack='aware'``): after each linear step the cables' quasi-static tensions
+  T_i + dT_i(q) are checked; where one would fall to zero or below, the step is taken again
+  with the compression-free platform of :mod:`cdpr_dynamics.dynamics.slack` (the same
+  :class:`~cdpr_dynamics.dynamics.slack.SlackStepper` as ``cdpr_analyze --slack-aware``; for a
+  model with cable DOFs its platform-only form, :func:`~cdpr_dynamics.dynamics.slack.
+  platform_only_method`), which carries on until every cable has been taut for ``SETTLE_S``;
+  then the linear model takes over from its state (cable interiors quasi-static).
+  ``slack='linear'`` keeps the linear model and only flags the cables.
 """
 from __future__ import annotations
 
@@ -27,6 +38,9 @@ from cdpr_dynamics.analysis.pipeline import (AnalysisError, Equilibrium, build_s
                                              equilibrium, equilibrium_for, model_warnings,
                                              new_tension_solver, point_displacement)
 from cdpr_dynamics.analysis.config import Settings
+from cdpr_dynamics.dynamics import held_load
+from cdpr_dynamics.dynamics.held_load import HeldLoadSteps
+from cdpr_dynamics.dynamics.slack import SlackStepper, platform_only_method
 from cdpr_dynamics.dynamics.system import ChainNewmark, DynamicsError, Newmark, PlatformSystem
 from cdpr_dynamics.mechanics.feasibility import WrenchSet
 from cdpr_dynamics.models.catenary import sag_parameter
@@ -42,6 +56,9 @@ TYPICAL_INTERVAL_S = 0.01      # a wrench interval the step cap should cover (10
 STEPS_PER_PERIOD = 20          # Newmark steps per period that resolve a mode to ~1 %
 AUTO_RECHOOSE_M = 0.05
 DENSE_NEWMARK_DOFS = 100    # up to this size dense matrices are cheaper to build and solve
+SLACK_MODES = ('aware', 'linear')
+SETTLE_S = 0.05             # every cable taut this long: back from the compression-free model
+CLOSED_FORM_STEPS = 100     # longer intervals (and longer than the DOFs) in closed form
 
 
 @dataclass(frozen=True)
@@ -108,7 +125,10 @@ class LivePredictor:
     """Current equilibrium, model and integrator of a robot; see the module docstring."""
 
     def __init__(self, settings: Settings, pose_tolerance_m: float = 1e-4,
-                 angle_tolerance_rad: float = 1e-4):
+                 angle_tolerance_rad: float = 1e-4, slack: str = 'aware'):
+        if slack not in SLACK_MODES:
+            raise ValueError(f'slack must be one of {", ".join(SLACK_MODES)}, not {slack!r}')
+        self.slack = slack
         self.pose_tolerance_m = pose_tolerance_m
         self.angle_tolerance_rad = angle_tolerance_rad
         self.settings = settings
@@ -130,6 +150,11 @@ class LivePredictor:
         self.max_steps_per_wrench = MAX_STEPS_PER_WRENCH
         self.notice = ''                 # what the last advance() left out, or ''
         self._pose_of = None             # the pose's part of a prediction (_pose_parts)
+        self._stepper: SlackStepper | None = None    # the compression-free model, while slack
+        self._taut_steps = 0
+        self._last_step_load = None      # the load of the last step (platform DOFs)
+        self.slack_cables: tuple[int, ...] = ()      # cables slack at the last stamp
+        self.slack_time_s = 0.0          # predicted time with a slack cable, in total
         self.update_pose(settings.initial_position_m, rotation=settings.initial_rotation,
                          force=True)
 
@@ -206,6 +231,7 @@ class LivePredictor:
         self.position_m, self.rotation = statics.position_m, statics.rotation
         self.integrator = integrator
         self.wrench_set = wrench_set
+        self._at_pose(system)
         sag = sag_parameter(eq.cables)
         self.last_update = PoseUpdate(True, system.assembly.method, system.dofs, timings,
                                       tuple(warnings), tuple(sag.tolist()))
@@ -273,7 +299,9 @@ class LivePredictor:
         kept and the cable interior follows them quasi-statically, u_i = -K_ii^-1 K_ip u_p
         (likewise v, a), so a method toggle never restarts the prediction from rest.
         """
-        integrator = newmark_for(system, damping_for(self.settings, system), self.settings)
+        damping = damping_for(self.settings, system)
+        integrator = newmark_for(system, damping, self.settings)
+        integrator.damping = damping
         old = self.integrator
         if old is not None:
             carry_state(old, integrator, system.platform_dofs)
@@ -329,30 +357,182 @@ class LivePredictor:
                 held[:nd] = self._load[:nd]
             dt_ns = max(1, round(self.settings.dt_s * 1e9))
             steps, self._remainder_ns = divmod(stamp_ns - self._t_ns + self._remainder_ns, dt_ns)
-            cap = self.max_steps_per_wrench
-            if steps > cap:
-                self.notice = (f'{(stamp_ns - self._t_ns) * 1e-9:.6g} s since the last wrench '
-                               f'would take {steps} Newmark steps of {self.settings.dt_s:g} s; '
-                               f'integrated {cap} ({cap * self.settings.dt_s:.6g} s) of the held '
-                               f'wrench (node.max_steps_per_wrench) and skipped the rest, state '
-                               f'kept')
-                steps, self._remainder_ns = cap, 0
-            step = self.integrator.step
-            for _ in range(steps):
-                step(held)
+            if not self._held_closed_form(held, steps):
+                cap = self.max_steps_per_wrench
+                if steps > cap:
+                    self.notice = (f'{(stamp_ns - self._t_ns) * 1e-9:.6g} s since the last '
+                                   f'wrench would take {steps} Newmark steps of '
+                                   f'{self.settings.dt_s:g} s; integrated {cap} '
+                                   f'({cap * self.settings.dt_s:.6g} s) of the held wrench '
+                                   f'(node.max_steps_per_wrench) and skipped the rest, state '
+                                   f'kept')
+                    steps, self._remainder_ns = cap, 0
+                self._step(held, steps)
         self._t_ns = stamp_ns
         # two load vectors swap roles (no allocation per wrench): the one just integrated takes
         # the next wrench (only its entries of the platform DOFs are ever written)
         self._spare_load, self._spare_dofs = ((held, self._load_dofs) if held is self._load
                                               else (None, 0))
         self._load, self._load_dofs = load, nd
-        return self.integrator.u[:3].copy()
+        return self.platform_state()[0][:3].copy()
+
+    # ----------------------------------------------------------------------------- slack
+
+    def platform_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """(q, q') (nd,) of the platform DOFs: the compression-free model's while a cable is
+        slack (``slack='aware'``), else the linear integrator's (views: copy to keep)."""
+        if self._stepper is not None:
+            return self._stepper.q, self._stepper.v
+        nd = self.system.platform_dofs
+        return self.integrator.u[:nd], self.integrator.v[:nd]
+
+    def cable_force_n(self) -> np.ndarray:
+        """(n,) predicted cable forces (N), the cables' dampers included: the compression-free
+        model's (0 while slack) or the linear quasi-static T_i + dT_i(q + dK q')
+        (:mod:`cdpr_dynamics.dynamics.slack`: Rayleigh's stiffness part is the cables' own
+        damping)."""
+        if self._stepper is not None:
+            return self._stepper.pull.copy()
+        nd = self.system.platform_dofs
+        u, v = self.integrator.u[:nd], self.integrator.v[:nd]
+        return self._tension0 + self._tension_map @ (u + self.integrator.damping.stiffness_factor
+                                                     * v)
+
+    def stretch_rate_m_s(self) -> np.ndarray:
+        """(n,) predicted rate of each cable's stretch (m/s): d(chord length)/dt of the
+        platform's motion, -u_i . G_i q' (the anchor-ward unit vector u_i)."""
+        return self._stretch_map @ self.platform_state()[1]
+
+    def _at_pose(self, system: PlatformSystem) -> None:
+        """Per-pose data of the slack check and the closed form (after a rebuild)."""
+        g = system.geometry.attachment_map()
+        unit = system.geometry.unit
+        k_end = system.assembly.static_end_stiffness()
+        k_axial = np.einsum('ci,cij,cj->c', unit, k_end, unit)
+        self._stretch_map = -np.einsum('ci,cia->ca', unit, g)               # (n, nd)
+        self._tension_map = k_axial[:, None] * self._stretch_map            # dT/dq
+        self._tension0 = row_norm(system.assembly.end_force_n)
+        self._saved = np.empty_like(self.integrator._state)
+        self._held = None                   # HeldLoadSteps of this model, made on first use
+        self._platform_system = None        # the compression-free model's, on first use
+        self._interior = None               # interior_map of the model, on first use
+        self._settle_steps = max(1, math.ceil(SETTLE_S / self.settings.dt_s - 1e-9))
+        if self._stepper is not None:       # slack across the pose update: carry on there
+            stepper = self._stepper
+            self._stepper = None
+            self._enter_slack(stepper.q, stepper.v, stepper.acc)
+
+    def _step(self, load: np.ndarray, steps: int) -> None:
+        """``steps`` steps under ``load``: linear, or compression-free while a cable is slack
+        (module docstring)."""
+        integrator = self.integrator
+        nd = self.system.platform_dofs
+        if self.slack == 'linear':
+            for _ in range(steps):
+                integrator.step(load)
+            if steps:
+                slack = self.cable_force_n() <= 0.0
+                self.slack_cables = tuple(np.flatnonzero(slack).tolist())
+                if self.slack_cables:
+                    self.slack_time_s += steps * self.settings.dt_s
+            return
+        state, saved = integrator._state, self._saved
+        tension0, tension_map = self._tension0, self._tension_map
+        dk = integrator.damping.stiffness_factor
+        previous = self._last_step_load          # the load of the step before (platform)
+        for _ in range(steps):
+            if self._stepper is None:
+                np.copyto(saved, state)
+                integrator.step(load)
+                if (tension0 + tension_map @ (state[0, :nd] + dk * state[1, :nd])).min() > 0.0:
+                    previous = load
+                    continue
+                np.copyto(state, saved)        # a cable would slacken in this step: again
+                self._enter_slack(saved[0, :nd], saved[1, :nd], None,
+                                  (load if previous is None else previous)[:nd])
+            self._slack_step(load)
+            previous = load
+        if steps:
+            self._last_step_load = load[:nd].copy()
+        if self._stepper is None:
+            self.slack_cables = ()
+
+    def _enter_slack(self, q, v, acc=None, force=None) -> None:
+        """Switch to the compression-free model at (q, q') (and q'' or the load ``force``
+        whose balance gives it)."""
+        system = self._platform_system
+        if system is None:
+            method = platform_only_method(self.system.assembly.method)
+            system = self.system
+            if system.assembly.interior_dofs or system.assembly.method != method:
+                system = build_system(self.settings, self.eq, method, 1)
+            self._platform_system = system
+        s = self.settings
+        stepper = SlackStepper(system, self.integrator.damping, s.dt_s, s.newmark_alpha,
+                               s.newmark_beta)
+        if acc is None:
+            stepper.start(q, v, force)
+        else:
+            stepper.q, stepper.v, stepper.acc = (np.array(x, dtype=float) for x in (q, v, acc))
+        self._stepper = stepper
+        self._taut_steps = 0
+
+    def _slack_step(self, load: np.ndarray) -> None:
+        """One compression-free step; back to the linear model once settled."""
+        stepper = self._stepper
+        stepper.step(load[:stepper.cables.nd])
+        slack = stepper.pull <= 0.0
+        if slack.any():
+            self._taut_steps = 0
+            self.slack_time_s += self.settings.dt_s
+            self.slack_cables = tuple(np.flatnonzero(slack).tolist())
+            return
+        self.slack_cables = ()
+        self._taut_steps += 1
+        if self._taut_steps >= self._settle_steps:
+            self._leave_slack()
+
+    def _leave_slack(self) -> None:
+        """The linear integrator takes over the compression-free state (interior
+        quasi-static)."""
+        stepper, self._stepper = self._stepper, None
+        platform = np.column_stack([stepper.q, stepper.v, stepper.acc])
+        state = self.integrator._state
+        nd = platform.shape[0]
+        state[:, :nd] = platform.T
+        if state.shape[1] > nd:
+            if self._interior is None:
+                self._interior = interior_map(self.integrator.k, nd)
+            state[:, nd:] = (self._interior @ platform).T
+
+    def _held_closed_form(self, load: np.ndarray, steps: int) -> bool:
+        """Take ``steps`` linear steps under ``load`` in closed form where that pays and is
+        exact (no slack now, at the end or in the static deflection); False: step them."""
+        integrator = self.integrator
+        n = integrator.u.shape[0]
+        if (steps <= max(CLOSED_FORM_STEPS, n) or n > held_load.MAX_DOFS
+                or self._stepper is not None):
+            return False
+        if self._held is None:
+            self._held = HeldLoadSteps(integrator.k, integrator.m, integrator.damping,
+                                       integrator.a)
+        after = self._held.advance(integrator._state, load, steps)
+        nd = self.system.platform_dofs
+        if self.slack == 'aware':
+            dk = integrator.damping.stiffness_factor
+            ends = np.stack([after[0, :nd] + dk * after[1, :nd], self._held.static(load)[:nd]])
+            if (self._tension0 + ends @ self._tension_map.T).min() <= 0.0:
+                return False
+        integrator._state[:] = after
+        self._last_step_load = load[:nd].copy()
+        self.slack_cables = ()
+        return True
 
     def prediction(self, point_m=(0.0, 0.0, 0.0)) -> Prediction:
         """The integrator's current state at the point ``point_m`` (platform frame, m):
         :class:`Prediction`; the default (the centroid) gives :meth:`advance`'s displacement."""
         nd = self.system.platform_dofs
-        q = self.integrator.u[:nd]
+        q = self.platform_state()[0]
         point = point_m if type(point_m) is tuple else tuple(map(float, point_m))
         pose = self._pose_of
         if (pose is None or pose[0] is not self.rotation or pose[1] is not self.position_m
@@ -383,8 +563,55 @@ class LivePredictor:
         self._t_ns = None
         self._load = None
         self._remainder_ns = 0
+        self._stepper = None
+        self._last_step_load = None
+        self.slack_cables = ()
         if self.integrator is not None:
             self.integrator.reset()
+
+
+@dataclass(frozen=True, eq=False)
+class LiveHistory:
+    """A :class:`LivePredictor`'s response to a sampled load: ``t_s`` (nt,), platform DOFs
+    ``u`` (nt, nd), predicted ``cable_force_n`` (nt, n), ``method`` and
+    ``elements_per_cable`` of the linear model, ``slack_method`` of the compression-free one."""
+
+    t_s: np.ndarray
+    u: np.ndarray
+    cable_force_n: np.ndarray
+    method: str
+    elements_per_cable: int
+    slack_method: str
+
+    @property
+    def slack(self) -> np.ndarray:
+        """(nt, n) True where a cable carries no tension."""
+        return ~(self.cable_force_n > 0.0)
+
+
+def harmonic_history(settings: Settings, excitation_hz: float, duration_s: float,
+                     slack: str = 'aware') -> LiveHistory:
+    """The response from rest at the initial pose to ``frf.force_n sin(2 pi f t)`` (and
+    ``frf.moment_nm``), fed to a :class:`LivePredictor` as a wrench stream: the wrench stamped
+    t_k carries the load at t_{k+1} = t_k + dt, so each Newmark step ends on the load of the
+    offline history (``cdpr_analyze``). A replay of that stream gives the same numbers."""
+    predictor = LivePredictor(settings, slack=slack)
+    dt = settings.dt_s
+    dt_ns = max(1, round(dt * 1e9))
+    steps = int(round(duration_s / dt))
+    t = np.arange(steps + 1) * dt
+    w = 2.0 * math.pi * excitation_hz
+    nd = predictor.system.platform_dofs
+    u = np.zeros((steps + 1, nd))
+    forces = np.zeros((steps + 1, predictor.eq.geometry.length_m.size))
+    for k in range(steps + 1):
+        load = math.sin(w * (k + 1) * dt)
+        predictor.advance(k * dt_ns, load * settings.frf_force_n, load * settings.frf_moment_nm)
+        u[k] = predictor.platform_state()[0]
+        forces[k] = predictor.cable_force_n()
+    method = predictor.system.assembly.method
+    return LiveHistory(t, u, forces, method, predictor.system.assembly.elements_per_cable,
+                       platform_only_method(method))
 
 
 def newmark_for(system: PlatformSystem, damping, settings: Settings) -> Newmark:
@@ -401,6 +628,17 @@ def newmark_for(system: PlatformSystem, damping, settings: Settings) -> Newmark:
         return Newmark(k, m, damping, s.dt_s, s.newmark_alpha, s.newmark_beta)
 
 
+def interior_map(k, platform_dofs: int) -> np.ndarray:
+    """(ni, nd) Z = -K_ii^-1 K_ip: the cable interior's quasi-static displacement per
+    platform DOF of the stiffness ``k`` (dense or sparse)."""
+    interior = k[platform_dofs:, platform_dofs:]
+    coupling = k[platform_dofs:, :platform_dofs]
+    if sp.issparse(k):
+        coupling = coupling.toarray()
+        return -np.asarray(spla.splu(sp.csc_matrix(interior)).solve(coupling))
+    return -np.linalg.solve(interior, coupling)
+
+
 def carry_state(old: Newmark, new: Newmark, platform_dofs: int) -> None:
     """Give ``new`` the state of ``old`` (see :meth:`LivePredictor._integrator`)."""
     if old.u.shape == new.u.shape:
@@ -411,14 +649,7 @@ def carry_state(old: Newmark, new: Newmark, platform_dofs: int) -> None:
     state = np.zeros((new.u.size, 3))
     state[:nd] = platform
     if new.u.size > platform_dofs:
-        k = new.k
-        interior = k[platform_dofs:, platform_dofs:]
-        coupling = k[platform_dofs:, :nd] @ platform
-        if sp.issparse(k):
-            state[platform_dofs:] = -np.asarray(spla.splu(sp.csc_matrix(interior)).solve(
-                np.asarray(coupling)))
-        else:
-            state[platform_dofs:] = -np.linalg.solve(interior, coupling)
+        state[platform_dofs:] = interior_map(new.k, platform_dofs)[:, :nd] @ platform
     new.u, new.v, new.acc = (np.ascontiguousarray(state[:, i]) for i in range(3))
 
 

@@ -31,8 +31,8 @@ from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.dynamics.modes import modes
 from cdpr_dynamics.mechanics.robot import DOF_NAMES
 from cdpr_dynamics.selection.auto import accuracy_warnings, choose_model
-from cdpr_dynamics.dynamics.slack import (peak_displacement, platform_only_method,
-                                          slack_time_history)
+from cdpr_dynamics.analysis.live import harmonic_history
+from cdpr_dynamics.dynamics.slack import peak_displacement
 
 
 def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration_s: float,
@@ -97,8 +97,9 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
                                                       settings.frf_force_n).tolist(),
                                   'lowest_tension_n': tension.min(axis=1).tolist()})
                 if slack_aware:
-                    histories[-1]['slack_aware'] = _slack_aware(settings, eq, assembly.method,
-                                                                f_exc, duration_s, damping)
+                    histories[-1]['slack_aware'] = _slack_aware(
+                        settings, assembly.method, assembly.elements_per_cable, f_exc,
+                        duration_s)
                     histories[-1]['slack_aware']['peak_uz_linear_m'] = peak_displacement(th.u_m)
     else:
         warnings.append(f'method {assembly.method} has no finite matrices: no time history')
@@ -170,18 +171,21 @@ def mode_entries(found, freqs, damping) -> list[dict]:
     return entries
 
 
-def _slack_aware(settings: Settings, eq: Equilibrium, method: str, f_exc: float,
-                 duration_s: float, damping) -> dict:
-    """The slack-aware time history of ``method``'s platform-only form, as JSON."""
-    name = platform_only_method(method)
-    system = safe(build_system, settings, eq, name, 1)
-    th = safe(slack_time_history, system, settings.frf_force_n, f_exc, duration_s, damping,
-              settings.dt_s, settings.newmark_alpha, settings.newmark_beta)
-    return {'method': name, 'elements_per_cable': 1, 'u_m': th.u_m.tolist(),
-            'peak_uz_m': peak_displacement(th.u_m),
-            'min_tension_n': float(th.tension_n.min()),
-            'lowest_tension_n': th.tension_n.min(axis=1).tolist(),
-            'slack_fraction': th.slack.mean(axis=0).tolist()}
+def _slack_aware(settings: Settings, method: str, elements: int, f_exc: float,
+                 duration_s: float) -> dict:
+    """The slack-aware time history of ``method`` as JSON: the live predictor's
+    (:func:`~cdpr_dynamics.analysis.live.harmonic_history`), linear while every cable is taut,
+    the compression-free platform-only model while one is slack."""
+    history = safe(harmonic_history, settings.replace(method=method,
+                                                      elements_per_cable=elements),
+                   f_exc, duration_s)
+    u_m = history.u[:, :3]
+    return {'method': history.method, 'elements_per_cable': history.elements_per_cable,
+            'slack_method': history.slack_method, 'u_m': u_m.tolist(),
+            'peak_uz_m': peak_displacement(u_m),
+            'min_tension_n': float(history.cable_force_n.min()),
+            'lowest_tension_n': history.cable_force_n.min(axis=1).tolist(),
+            'slack_fraction': history.slack.mean(axis=0).tolist()}
 
 
 def _plot(documents: list[dict], plot_dir: Path, settings: Settings, eq: Equilibrium,

@@ -124,32 +124,39 @@ class CompressionFreeCables:
             k_rot = -np.einsum('cij,cjk->cik', skew(f0), skew(geo.lever_m))
             self.rotation[:, 3:, 3:] = 0.5 * (k_rot + np.swapaxes(k_rot, 1, 2))
         self.static_force = np.einsum('cia,ci->a', self.g, self.tension[:, None] * self.unit)
+        self._g2 = self.g.reshape(-1, nd)                               # (3 n, nd)
+        self._gtg = np.einsum('cia,cib->cab', self.g, self.g)           # G_i^T G_i
+        self._eye = np.eye(nd)
 
     def state(self, q: np.ndarray, qdot: np.ndarray, stiffness_factor: float = 0.0):
         """(cable forces P (n,), restoring force R (nd,), tangent K_t (nd, nd)) at (q, q').
 
-        ``stiffness_factor`` is dK: the cables' damping inside P (module docstring).
+        ``stiffness_factor`` is dK: the cables' damping inside P (module docstring). Written
+        as few numpy calls on (n, 3) arrays (a live prediction steps through it while a cable
+        is slack): G_i^T K_i G_i with K_i = w_i t t^T + s_i I is w_i h_i h_i^T + s_i G_i^T G_i,
+        h_i = G_i^T t_i.
         """
-        d = np.einsum('cia,a->ci', self.g, q)
-        d_dot = np.einsum('cia,a->ci', self.g, qdot)
+        n = self.length.shape[0]
+        d = (self._g2 @ q).reshape(n, 3)
+        d_dot = (self._g2 @ qdot).reshape(n, 3)
         chord = self.chord - d
-        length = np.linalg.norm(chord, axis=1)
+        length = np.sqrt((chord * chord).sum(axis=1))
         t = chord / length[:, None]
-        stretch_rate = -np.einsum('ci,ci->c', t, d_dot)
+        along = (t * d_dot).sum(axis=1)                        # -(stretch rate)
         pull = np.maximum(0.0, self.tension + self.k_axial * (
-            length - self.length + stiffness_factor * stretch_rate))
-        transverse_rate = d_dot - np.einsum('ci,ci->c', t, d_dot)[:, None] * t
-        force = pull[:, None] * t - (stiffness_factor * pull / length)[:, None] \
-            * transverse_rate
-        scale = pull / self.tension
-        rot = np.einsum('c,cab->ab', scale, self.rotation)
-        restoring = self.static_force - np.einsum('cia,ci->a', self.g, force) \
-            + rot @ (q + stiffness_factor * qdot)
-        taut = pull > 0.0
-        tt = t[:, :, None] * t[:, None, :]
-        k_cable = np.where(taut, self.k_axial, 0.0)[:, None, None] * tt \
-            + (pull / length)[:, None, None] * (np.eye(3) - tt)
-        tangent = np.einsum('cia,cij,cjb->ab', self.g, k_cable, self.g) + rot
+            length - self.length - stiffness_factor * along))
+        per_length = pull / length
+        force = pull[:, None] * t - (stiffness_factor * per_length)[:, None] \
+            * (d_dot - along[:, None] * t)
+        restoring = self.static_force - self._g2.T @ force.reshape(-1)
+        axial = np.where(pull > 0.0, self.k_axial, 0.0) - per_length
+        if self.nd == 3:          # a point mass: G_i = I
+            tangent = (t.T * axial) @ t + per_length.sum() * self._eye
+            return pull, restoring, tangent
+        h = np.matmul(t[:, None, :], self.g)[:, 0, :]                         # (n, nd)
+        rot = np.tensordot(pull / self.tension, self.rotation, 1)
+        restoring += rot @ (q + stiffness_factor * qdot)
+        tangent = (h.T * axial) @ h + np.tensordot(per_length, self._gtg, 1) + rot
         return pull, restoring, tangent
 
     def potential(self, q: np.ndarray) -> float:
@@ -159,6 +166,82 @@ class CompressionFreeCables:
         tau = np.maximum(0.0, self.tension + self.k_axial * (length - self.length))
         return float(np.sum((tau ** 2 - self.tension ** 2) / (2.0 * self.k_axial)
                             + self.tension * np.einsum('ci,ci->c', self.unit, d)))
+
+
+class SlackStepper:
+    """Newmark steps of the compression-free platform (the module docstring's scheme).
+
+    State ``q``, ``v``, ``acc`` (nd,) of the platform DOFs, ``pull`` (n,) the cable forces at
+    the last step. :meth:`step` advances one ``dt_s`` to the load ``force`` (nd,) at the step's
+    end; both :func:`slack_time_history` and the live predictor step through it, so an offline
+    history and a replay give the same numbers.
+    """
+
+    def __init__(self, system: PlatformSystem, damping: Damping, dt_s: float = 1e-3,
+                 alpha: float = 0.5, beta: float = 0.25, cable_damping: bool = True):
+        if not (dt_s > 0 and alpha >= 0.5 and beta >= alpha / 2.0):
+            raise DynamicsError(f'slack-aware Newmark needs dt > 0 and the unconditionally '
+                                f'stable alpha >= 1/2, beta >= alpha/2 (got alpha = {alpha}, '
+                                f'beta = {beta})')
+        self.cables = cables = CompressionFreeCables(system)
+        nd = cables.nd
+        self.m = cables.mass
+        self.dt_s = dt_s
+        dt = dt_s
+        self.a0, self.a1 = 1.0 / (beta * dt * dt), alpha / (beta * dt)
+        self.a2, self.a3 = 1.0 / (beta * dt), 1.0 / (2.0 * beta) - 1.0
+        self.a6, self.a7 = dt * (1.0 - alpha), alpha * dt
+        dm, dk = damping.mass_factor, damping.stiffness_factor
+        self.linear = dm * self.m                        # the damping outside the cables
+        if not cable_damping:
+            self.linear = self.linear + dk * cables.state(np.zeros(nd), np.zeros(nd))[2]
+            dk = 0.0
+        self.dk = dk
+        self.jacobian_constant = self.a0 * self.m + self.a1 * self.linear
+        self.scale = float(np.abs(cables.tension).sum())
+        self.q, self.v, self.acc = np.zeros(nd), np.zeros(nd), np.zeros(nd)
+        self.pull = cables.tension.copy()
+        self.iterations = 0
+
+    def start(self, q, v, force) -> None:
+        """Set the state (q, v) and the acceleration that balances ``force`` there."""
+        self.q = np.array(q, dtype=float)
+        self.v = np.array(v, dtype=float)
+        self.pull, restoring, _ = self.cables.state(self.q, self.v, self.dk)
+        self.acc = np.linalg.solve(self.m, force - self.linear @ self.v - restoring)
+
+    def _residual(self, q_new, force):
+        acc_new = self.a0 * (q_new - self.q) - self.a2 * self.v - self.a3 * self.acc
+        v_new = self.v + self.a6 * self.acc + self.a7 * acc_new
+        pull, restoring, tangent = self.cables.state(q_new, v_new, self.dk)
+        r = self.m @ acc_new + self.linear @ v_new + restoring - force
+        return r, acc_new, v_new, pull, tangent
+
+    def step(self, force) -> np.ndarray:
+        """One step to the load ``force`` (nd,) at its end; returns q (the stepper's own)."""
+        dt = self.dt_s
+        tol = RESIDUAL_TOL * (self.scale + math.sqrt(float(force @ force)))
+        q_new = self.q + dt * self.v + 0.5 * dt * dt * self.acc          # predictor
+        r, acc_new, v_new, pull, tangent = self._residual(q_new, force)
+        norm = math.sqrt(float(r @ r))
+        for it in range(1, NEWTON_ITERATIONS + 1):
+            if norm <= tol:
+                break
+            jacobian = self.jacobian_constant + (1.0 + self.a1 * self.dk) * tangent
+            step = np.linalg.solve(jacobian, -r)
+            for halving in range(40):   # line search: the force has kinks where cables slacken
+                trial_q = q_new + 0.5 ** halving * step
+                trial = self._residual(trial_q, force)
+                trial_norm = math.sqrt(float(trial[0] @ trial[0]))
+                if trial_norm < norm:
+                    break
+            q_new, norm = trial_q, trial_norm
+            r, acc_new, v_new, pull, tangent = trial
+        else:
+            raise DynamicsError(f'slack-aware Newmark: Newton did not converge (residual '
+                                f'{norm:.3g} N)')
+        self.q, self.v, self.acc, self.pull, self.iterations = q_new, v_new, acc_new, pull, it
+        return q_new
 
 
 def slack_time_history(system: PlatformSystem, force_n, excitation_hz: float,
@@ -174,13 +257,8 @@ def slack_time_history(system: PlatformSystem, force_n, excitation_hz: float,
     starts the platform moving (free-vibration checks). Raises :class:`DynamicsError` for a
     model with cable DOFs, an unstable Newmark setting or a step Newton cannot converge.
     """
-    if not (dt_s > 0 and alpha >= 0.5 and beta >= alpha / 2.0):
-        raise DynamicsError(f'slack-aware Newmark needs dt > 0 and the unconditionally stable '
-                            f'alpha >= 1/2, beta >= alpha/2 (got alpha = {alpha}, beta = '
-                            f'{beta})')
-    cables = CompressionFreeCables(system)
-    nd = cables.nd
-    m = cables.mass
+    stepper = SlackStepper(system, damping, dt_s, alpha, beta, cable_damping)
+    nd = stepper.cables.nd
     steps = int(round(duration_s / dt_s))
     t = np.arange(steps + 1) * dt_s
     if load is None:
@@ -190,56 +268,21 @@ def slack_time_history(system: PlatformSystem, force_n, excitation_hz: float,
 
         def load(time_s):
             return amplitude * math.sin(w * time_s)
-    dt = dt_s
-    a0, a1 = 1.0 / (beta * dt * dt), alpha / (beta * dt)
-    a2, a3 = 1.0 / (beta * dt), 1.0 / (2.0 * beta) - 1.0
-    a6, a7 = dt * (1.0 - alpha), alpha * dt
-    dm, dk = damping.mass_factor, damping.stiffness_factor
-    q = np.zeros(nd)
-    v = np.zeros(nd) if initial_velocity is None else np.asarray(initial_velocity, float)
-    linear = dm * m                          # the damping outside the cables
-    if not cable_damping:
-        linear = linear + dk * cables.state(q, np.zeros(nd))[2]
-        dk = 0.0
-    pull, restoring, _ = cables.state(q, v, dk)
-    acc = np.linalg.solve(m, load(0.0) - linear @ v - restoring)
+    stepper.start(np.zeros(nd), np.zeros(nd) if initial_velocity is None else initial_velocity,
+                  load(0.0))
     u_out = np.zeros((steps + 1, nd))
     v_out = np.zeros((steps + 1, nd))
     a_out = np.zeros((steps + 1, nd))
-    tension = np.zeros((steps + 1, len(pull)))
+    tension = np.zeros((steps + 1, len(stepper.pull)))
     iterations = np.zeros(steps + 1, dtype=int)
-    v_out[0], a_out[0], tension[0] = v, acc, pull
-    scale = float(np.abs(cables.tension).sum())
-
-    def residual(q_new, f):
-        acc_new = a0 * (q_new - q) - a2 * v - a3 * acc
-        v_new = v + a6 * acc + a7 * acc_new
-        pull, restoring, tangent = cables.state(q_new, v_new, dk)
-        r = m @ acc_new + linear @ v_new + restoring - f
-        return r, acc_new, v_new, pull, tangent
-
+    v_out[0], a_out[0], tension[0] = stepper.v, stepper.acc, stepper.pull
     for i in (progress or iter)(range(1, steps + 1)):
-        f = load(t[i])
-        tol = RESIDUAL_TOL * (scale + float(np.linalg.norm(f)))
-        q_new = q + dt * v + 0.5 * dt * dt * acc          # predictor
-        for it in range(1, NEWTON_ITERATIONS + 1):
-            r, acc_new, v_new, pull, tangent = residual(q_new, f)
-            norm = float(np.linalg.norm(r))
-            if norm <= tol:
-                break
-            jacobian = a0 * m + a1 * linear + (1.0 + a1 * dk) * tangent
-            step = np.linalg.solve(jacobian, -r)
-            s = 1.0                     # line search: the force has kinks where cables slacken
-            for _ in range(40):
-                if np.linalg.norm(residual(q_new + s * step, f)[0]) < norm:
-                    break
-                s *= 0.5
-            q_new = q_new + s * step
-        else:
-            raise DynamicsError(f'slack-aware Newmark: Newton did not converge at t = '
-                                f'{t[i]:.4g} s (residual {norm:.3g} N)')
-        q, v, acc = q_new, v_new, acc_new
-        u_out[i], v_out[i], a_out[i], tension[i], iterations[i] = q, v, acc, pull, it
+        try:
+            stepper.step(load(t[i]))
+        except DynamicsError as exc:
+            raise DynamicsError(f'{exc} at t = {t[i]:.4g} s') from None
+        u_out[i], v_out[i], a_out[i] = stepper.q, stepper.v, stepper.acc
+        tension[i], iterations[i] = stepper.pull, stepper.iterations
     return SlackHistory(t, u_out, v_out, a_out, tension, iterations)
 
 
