@@ -154,6 +154,16 @@ NODE_PARAMETERS: tuple[Param, ...] = (
           'their arrival', choices=('reject', 'arrival')),
     Param('node.output_point_m', [0.0, 0.0, 0.0], 'point whose predicted displacement and '
           'pose are published (m, platform frame; zero: the centroid)', length=3),
+    Param('node.slack', 'aware', 'where a cable would go slack: aware (the compression-free '
+          'model of cdpr_analyze --slack-aware takes over until every cable is taut again) or '
+          'linear (the linear prediction, a warning)', choices=('aware', 'linear')),
+    Param('node.shaper', 'none', 'input shaper and notch filters published for the lowest '
+          'platform modes after each rebuild: none, zv, zvd or ei',
+          choices=('none', 'zv', 'zvd', 'ei')),
+    Param('node.shaper_modes', 1, 'how many of the lowest platform modes the shaper '
+          '(convolved) and the notch filters cover', 1, 6),
+    Param('node.notch_sample_rate_hz', 1000.0, 'sample rate of the notch_filter biquads (Hz); '
+          'a mode at or above half of it gets no notch', 1e-3, 1e9),
     Param('node.marker_scale', 100.0, 'exaggeration of the predicted-displacement arrow of '
           'cdpr_markers (arrow length / displacement)', 0.0, 1e9),
 )
