@@ -109,3 +109,79 @@ def test_wall_clock_stamps_count_the_same_steps_as_small_ones(settings):
                                               [0.0, 0.0, 300.0 * np.sin(0.3 * k)])
                             for k in range(200)])
     assert_allclose(predictions[1], predictions[0], rtol=0, atol=1e-15)
+
+
+# --------------------------------------------------------------------------- slack, long gaps
+
+PAPER_LOAD = np.array([0.0, 0.0, 1500.0])
+
+
+def test_slack_aware_prediction_follows_the_compression_free_model():
+    """The paper's 1500 N at 5 Hz on spring: the live predictor (linear until a cable's force
+    would reach zero) and slack_time_history (compression-free throughout) agree; the linear
+    model goes 75 N into compression."""
+    from cdpr_dynamics.analysis.live import harmonic_history
+    from cdpr_dynamics.analysis.pipeline import damping_for
+    from cdpr_dynamics.dynamics.slack import slack_time_history
+    settings = load_settings().replace(method='spring')
+    live = harmonic_history(settings, 5.0, 1.0)
+    linear = harmonic_history(settings, 5.0, 1.0, slack='linear')
+    system = build_system(settings, equilibrium(settings))
+    offline = slack_time_history(system, PAPER_LOAD, 5.0, 1.0, damping_for(settings, system))
+    peak = np.abs(offline.u).max()
+    # before a cable slackens the motion is ~1e-5 m: the geometric non-linearity the linear
+    # part leaves out is ~1e-10 of the peak
+    assert_allclose(live.u, offline.u, rtol=0, atol=1e-6 * peak)
+    assert np.array_equal(live.slack, offline.slack)
+    assert linear.cable_force_n.min() < -70.0 and live.cable_force_n.min() == 0.0
+    assert np.abs(live.u[:, 2]).max() > 1.4 * np.abs(linear.u[:, 2]).max()
+
+
+def test_slack_then_taut_returns_to_the_linear_model_and_counts_slack_time():
+    settings = load_settings().replace(method='fem', elements_per_cable=4)
+    predictor = LivePredictor(settings)
+    stamps = np.arange(400) * 1_000_000
+    slack_steps = 0
+    for k, stamp in enumerate(stamps):
+        force = PAPER_LOAD if k < 60 else np.zeros(3)      # a 60 ms push, then nothing
+        predictor.advance(int(stamp), force)
+        slack_steps += bool(predictor.slack_cables)
+        if k < 30:          # pushed up, the upper cables (4-7) slacken first
+            assert set(predictor.slack_cables) <= {4, 5, 6, 7}
+    assert slack_steps > 5
+    assert predictor.slack_time_s == pytest.approx(slack_steps * settings.dt_s)
+    assert predictor._stepper is None and predictor.slack_cables == ()
+    # linear again: the free response decays as the linear model's from here
+    assert np.abs(predictor.platform_state()[0]).max() < 1e-5
+
+
+def test_long_gap_is_stepped_in_closed_form(settings, monkeypatch):
+    """A held wrench over 5000 steps: the same state as stepping it, no step taken."""
+    predictor = LivePredictor(settings, slack='linear')
+    reference = LivePredictor(settings, slack='linear')
+    reference.max_steps_per_wrench = 10_000
+    for p in (predictor, reference):
+        p.advance(0, [0.0, 0.0, 300.0])
+        p.advance(7_000_000, [50.0, -40.0, 200.0])       # moving when the gap begins
+    calls = []
+    step = predictor.integrator.step
+    monkeypatch.setattr(predictor.integrator, 'step', lambda f: calls.append(1) or step(f))
+    got = predictor.advance(5_007_000_000, [0.0, 0.0, 0.0])
+    expected = reference.advance(5_007_000_000, [0.0, 0.0, 0.0])
+    assert calls == [] and predictor.notice == ''
+    assert_allclose(got, expected, rtol=1e-8, atol=1e-12 * np.abs(expected).max())
+    assert_allclose(predictor.integrator.v, reference.integrator.v, rtol=0,
+                    atol=1e-6 * np.abs(reference.integrator.v).max() + 1e-15)
+    # and it carries on as the stepped one does
+    for p in (predictor, reference):
+        p.advance(5_027_000_000, [10.0, 0.0, 0.0])
+    assert_allclose(predictor.advance(5_030_000_000, [0.0, 0.0, 0.0]),
+                    reference.advance(5_030_000_000, [0.0, 0.0, 0.0]), rtol=1e-7, atol=1e-12)
+
+
+def test_long_gap_under_a_slackening_load_is_stepped(settings):
+    """Where the held load would slacken a cable the closed form (linear) does not apply."""
+    predictor = LivePredictor(settings)
+    predictor.advance(0, [0.0, 0.0, 3000.0])
+    predictor.advance(2_000_000_000, [0.0, 0.0, 0.0])
+    assert 'node.max_steps_per_wrench' in predictor.notice
