@@ -831,3 +831,47 @@ def test_replay_through_the_node_matches_golden(name, procs, output_dir):
                                        if kv.key.startswith('rejected_')})
         for what, kind in {(w, k) for (w, _), (k, _) in reference.rejected.items()}:
             assert counts.get((what, kind), 0) >= 1, (what, kind, counts)
+
+
+# ----------------------------------------------------------------------------- slack
+
+
+def test_slack_aware_replay_gives_the_analyze_numbers(tmp_path):
+    """The paper's 1500 N at 5 Hz as a 1 kHz wrench stream (the wrench stamped t_k carries the
+    load at t_k + dt, as cdpr_analyze's history steps): cdpr_replay's predictions are
+    harmonic_history's (the function behind cdpr_analyze --slack-aware) to round-off."""
+    import math
+
+    from builtin_interfaces.msg import Time
+
+    from cdpr_dynamics.analysis.live import harmonic_history
+
+    settings, _ = golden_settings(method='spring')
+    dt_ns = 1_000_000
+    steps = 400
+    source = tmp_path / 'paper_5hz.mcap'
+    with RecordingWriter(source) as writer:
+        writer.add_topic('/pose', POSE, scenarios.QOS)
+        writer.add_topic('/wrench', WRENCH, scenarios.QOS)
+        before = scenarios.T0_NS - dt_ns                   # the initial pose: no rebuild
+        writer.write('/pose', pose_message(settings.initial_position_m, (0.0, 0.0, 0.0, 1.0),
+                                           'world', Time(sec=before // 10**9,
+                                                         nanosec=before % 10**9)), before)
+        for k in range(steps + 1):
+            stamp = scenarios.T0_NS + k * dt_ns
+            load = 1500.0 * math.sin(2 * math.pi * 5.0 * (k + 1) * dt_ns * 1e-9)
+            writer.write('/wrench', wrench_message(
+                (0.0, 0.0, load), (0.0, 0.0, 0.0), 'world',
+                Time(sec=stamp // 10**9, nanosec=stamp % 10**9)), stamp)
+    out = replay_cli(source, '--output', tmp_path / 'aware.mcap', '--config', CONFIG,
+                     '--method', 'spring')
+    assert out.returncode == 0, out.stderr
+    got = read_predictions(tmp_path / 'aware.mcap')
+    replayed = np.array([got.displacement[scenarios.T0_NS + k * dt_ns]
+                         for k in range(steps + 1)])
+    expected = harmonic_history(settings, 5.0, steps * dt_ns * 1e-9)
+    assert expected.slack.any()
+    peak = np.abs(expected.u).max()
+    assert np.abs(replayed - expected.u[:, :3]).max() <= 1e-12 * peak
+    linear = harmonic_history(settings, 5.0, steps * dt_ns * 1e-9, slack='linear')
+    assert np.abs(replayed - linear.u[:, :3]).max() > 0.1 * peak

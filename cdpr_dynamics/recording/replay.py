@@ -81,6 +81,7 @@ class NodeOptions:
     angle_tolerance_rad: float = NODE_PARAMETER_BY_NAME['node.angle_tolerance_rad'].default
     quaternion_tolerance: float = NODE_PARAMETER_BY_NAME['node.quaternion_tolerance'].default
     output_point_m: tuple = tuple(NODE_PARAMETER_BY_NAME['node.output_point_m'].default)
+    slack: str = NODE_PARAMETER_BY_NAME['node.slack'].default
 
     def __post_init__(self):
         """Keep ``output_point_m`` a tuple of floats (hashable, JSON in the metadata)."""
@@ -283,7 +284,8 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
         raise ReplayError(f'{output_path} is the input file; write the replay elsewhere')
     info, pose, wrench, total = inspect_input(input_path, pose_topic, wrench_topic,
                                               allow_incomplete)
-    predictor = LivePredictor(settings, options.pose_tolerance_m, options.angle_tolerance_rad)
+    predictor = LivePredictor(settings, options.pose_tolerance_m, options.angle_tolerance_rad,
+                              options.slack)
     frame_id = settings.robot.frame_id
     handler = InputHandler(predictor, frame_id, options.quaternion_tolerance)
     displacement_topic = f'{_namespace(wrench)}/predicted_displacement'
