@@ -75,7 +75,8 @@ def test_analyze_json_contract_and_plots(tmp_path):
 
 @pytest.mark.parametrize('changes,args,message', [
     ({}, ['--config', '/nonexistent.yaml'], 'cannot read config /nonexistent.yaml'),
-    ({'robot.initial_position': [5.0, 0.0, 1.25]}, [], 'outside the frame'),
+    ({'robot.initial_position': [5.0, 0.0, 1.25]}, [], 'force x -0 is outside the reachable'),
+    ({'robot.initial_position': [1.25, 1.25, 2.5]}, [], 'cable 6 has zero length'),
     ({'tension.max_n': 120.0}, [], 'infeasible tension distribution'),
     ({'model.elements_per_cable': 0}, [], 'model.elements_per_cable = 0 is outside'),
 ])

@@ -197,10 +197,13 @@ def test_every_refusal_is_a_row_with_its_kind():
     turned = (0.0, 0.0, np.sin(np.pi / 8), np.cos(np.pi / 8))       # 45 degrees about z
     cases = [
         (paper, 'spring', (0.0, 0.0, 1.25, 0, 0, 0, 1), 'ok', ''),
-        (paper, 'spring', (2.0, 0.0, 1.0, 0, 0, 0, 1), 'outside', 'outside the frame'),
+        (paper, 'spring', (1.25, 1.25, 2.5, 0, 0, 0, 1), 'outside', 'zero length'),
+        (paper, 'spring', (2.0, 0.0, 1.0, 0, 0, 0, 1), 'infeasible', 'infeasible tension'),
         (paper, 'spring', (1.0, 0.0, 2.2, 0, 0, 0, 1), 'infeasible', 'infeasible tension'),
-        ({**paper, 'robot.anchors': [-1.25, 0, 2.5, 1.25, 0, 2.5], 'robot.attachments': []},
-         'spring', (0.0, 0.0, 1.0, 0, 0, 0, 1), 'rank_deficient', 'rank 2 < 3'),
+        ({**paper, 'robot.anchors': [-1.25, 0, 1.0, -2.5, 0, 1.0], 'robot.attachments': []},
+         'spring', (0.0, 0.0, 1.0, 0, 0, 0, 1), 'rank_deficient', 'rank 1 < 2'),
+        ({**paper, 'robot.anchors': [-1.25, 0, 2.5, 1.25, 0, 2.5], 'robot.attachments': [],
+          'tension.min_n': 1.0}, 'spring', (0.0, 0.0, 1.0, 0, 0, 0, 1), 'ok', ''),
         (rigid, 'spring', (0.0, 0.0, 1.25, *turned), 'crossing', 'cross'),
         ({**paper, 'tension.min_n': 0.0}, 'spring', (0.3, 0.2, 1.0, 0, 0, 0, 1),
          'method_invalid', 'slack'),

@@ -606,15 +606,15 @@ def test_bad_wrench_is_rejected_and_the_node_carries_on(paper, force, moment, fr
     ([0.0, 0.0, 1.25], (0, 0, 0.5, 1.2), None, False, 'not a unit quaternion'),
     ([0.0, 0.0, 1.25], (0, 0, 0, 1), 'map', False, "in frame 'map'"),
     ([0.0, 0.0, 1.25], (0, 0, 0, 1), None, True, 'out of order'),
-    ([0.0, 0.0, 3.0], (0, 0, 0, 1), None, False, 'outside the frame'),
+    ([1.25, 1.25, 2.5], (0, 0, 0, 1), None, False, 'zero length'),
     ([0.0, 0.0, 2.4], (0, 0, 0, 1), None, False, 'infeasible tension distribution'),
 ], ids=['nan-position', 'inf-quaternion', 'non-unit-quaternion', 'other-frame',
-        'out-of-order', 'outside-frame', 'infeasible-tensions'])
+        'out-of-order', 'on-an-anchor', 'infeasible-tensions'])
 def test_bad_pose_is_rejected_and_the_node_carries_on(paper, position, quaternion, frame,
                                                       old, words):
     paper.pose([0.1, 0.1, 1.2])
     stamp = s_to_stamp((paper.t_ns - 2_000_000) * 1e-9) if old else None
-    model = words in ('outside the frame', 'infeasible tension distribution')
+    model = words in ('zero length', 'infeasible tension distribution')
     paper.bad_pose(position, quaternion, frame, stamp, words, model)
     paper.wrench([0.0, 0.0, 500.0])                          # still at the last good pose
     paper.pose([0.0, 0.1, 1.3])                              # and a good pose is taken

@@ -49,6 +49,8 @@ from cdpr_dynamics.mechanics.robot import (matrix_to_quaternion, quaternion_prod
                                            rotation_vector_quaternion, row_norm)
 from cdpr_dynamics.selection.auto import choose_model
 from cdpr_dynamics.mechanics.statics import structure_of
+from cdpr_dynamics.mechanics.underactuated import (HeldWrenchSet, is_underactuated,
+                                                   required_wrench_at)
 
 FALLBACK_METHOD = 'spring'
 MAX_STEPS_PER_WRENCH = 1000    # default of node.max_steps_per_wrench (1 s at dt = 1 ms)
@@ -535,22 +537,24 @@ class LivePredictor:
         q = self.platform_state()[0]
         point = point_m if type(point_m) is tuple else tuple(map(float, point_m))
         pose = self._pose_of
-        if (pose is None or pose[0] is not self.rotation or pose[1] is not self.position_m
+        rotation, position = self.eq.geometry.rotation, self.eq.geometry.position_m
+        if (pose is None or pose[0] is not rotation or pose[1] is not position
                 or pose[2] != point):
             pose = self._pose_of = self._pose_parts(point)
         if nd == 3:        # a point mass: u itself, the equilibrium orientation
             displacement = q[:3].copy()
             return Prediction(displacement, pose[3] + displacement, pose[4])
-        displacement = point_displacement(q, self.rotation, point_m)
+        displacement = point_displacement(q, rotation, point_m)
         return Prediction(displacement, pose[3] + displacement,
-                          rotated_quaternion(self.rotation, q[3:6], pose[4]))
+                          rotated_quaternion(rotation, q[3:6], pose[4]))
 
     def _pose_parts(self, point_m) -> tuple:
-        """What :meth:`prediction` takes from the pose, kept until the pose or the point
+        """What :meth:`prediction` takes from the equilibrium pose (the given pose, or an
+        underactuated robot's equilibrium with its cable lengths), kept until it or the point
         changes: (rotation, position, point, p + R b (3,) m, R's quaternion (4,))."""
-        arm = self.rotation @ np.asarray(point_m, dtype=float)
-        return (self.rotation, self.position_m, point_m, self.position_m + arm,
-                matrix_to_quaternion(self.rotation))
+        rotation, position = self.eq.geometry.rotation, self.eq.geometry.position_m
+        arm = rotation @ np.asarray(point_m, dtype=float)
+        return (rotation, position, point_m, position + arm, matrix_to_quaternion(rotation))
 
     def rebase_time(self) -> None:
         """Take the next wrench's stamp as the new time origin, keeping the state of motion
@@ -690,9 +694,15 @@ def time_step_warnings(settings: Settings, system: PlatformSystem, lowest_hz: fl
 def wrench_set_at(settings: Settings, eq: Equilibrium) -> WrenchSet:
     """The external wrenches the cables can hold at ``eq`` within the tension box (per state,
     not per wrench): W^T itself for chord statics (its rank checked by ``equilibrium``), else
-    the sagged cables' end tangents (:func:`_tangent_structure`)."""
+    the sagged cables' end tangents (:func:`_tangent_structure`); an underactuated robot's
+    is a :class:`~cdpr_dynamics.mechanics.underactuated.HeldWrenchSet`."""
     s = settings
     chord = eq.statics == 'chord'
+    if is_underactuated(s.robot):
+        return HeldWrenchSet(eq.geometry.structure_matrix if chord else _tangent_structure(eq),
+                             s.tension_min_n, s.tension_max_n,
+                             required_wrench_at(s.robot, eq.geometry.rotation,
+                                                s.external_force_n, s.external_moment_nm))
     return WrenchSet(eq.geometry.structure_matrix if chord else _tangent_structure(eq),
                      s.tension_min_n, s.tension_max_n,
                      required_wrench(s.robot, s.external_force_n, s.external_moment_nm),

@@ -19,10 +19,13 @@ from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.models.catenary import (end_position, paper_misclosure, sag_parameter,
                                            up_and_weight)
 from cdpr_dynamics.mechanics.robot import (WRENCH_AXES, Geometry, GeometryError, geometry,
-                                           required_wrench, singular_values, skew)
+                                           matrix_to_quaternion, required_wrench,
+                                           singular_values, skew)
 from cdpr_dynamics.selection.auto import choose_model
 from cdpr_dynamics.mechanics.statics import Equilibrium, StaticsError, equilibrium_for
-from cdpr_dynamics.mechanics.tensions import TensionSolver
+from cdpr_dynamics.mechanics.tensions import TensionResult, TensionSolver
+from cdpr_dynamics.mechanics.underactuated import (Balance, UnderactuatedError, balance,
+                                                   is_underactuated)
 
 HEAVY_DAMPING_RATIO = 1.0
 
@@ -50,13 +53,16 @@ def structure_rank(structure_matrix: np.ndarray) -> tuple[int, float, np.ndarray
 
 
 def _check_design(settings: Settings, geo: Geometry) -> None:
-    """Refuse a structure matrix of rank below the platform DOFs, and crossing cables."""
-    ndof = settings.robot.platform_dofs
+    """Refuse a structure matrix of rank below min(cables, platform DOFs) (fewer cables than
+    DOFs is an underactuated robot, held by gravity), and crossing cables."""
+    full = min(settings.robot.platform_dofs, settings.robot.n_cables)
     sing = singular_values(geo.structure_matrix).tolist()                  # descending
-    if len(sing) < ndof or not sing[-1] > RANK_TOLERANCE * sing[0]:    # rank short: only
-        rank, _, direction = structure_rank(geo.structure_matrix)      # then the vectors
+    if len(sing) < full or not sing[full - 1] > RANK_TOLERANCE * sing[0]:    # rank short:
+        rank, _, direction = structure_rank(geo.structure_matrix)      # only then the vectors
         axis = WRENCH_AXES[int(np.argmax(np.abs(direction)))]
-        raise AnalysisError(f'the structure matrix has rank {rank} < {ndof} platform DOFs: no '
+        raise AnalysisError(f'the structure matrix has rank {rank} < {full} '
+                            f'(min of {settings.robot.n_cables} cables and '
+                            f'{settings.robot.platform_dofs} platform DOFs): no '
                             f'cable tensions produce a wrench along '
                             f'{np.round(direction, 3).tolist()} (mostly {axis}), so the '
                             'platform is not held in that direction')
@@ -75,8 +81,11 @@ def equilibrium(settings: Settings, position_m=None, rotation=None,
 
     The chord statics of Eqs. 8-12, and for a sag-aware ``method`` (:data:`SAG_METHODS`) the
     sag-consistent statics started from it (warm-started from ``start``, e.g. the previous
-    pose). Refuses (AnalysisError) a pose outside the frame, crossing cables, a structure
-    matrix of rank below the platform DOFs and an infeasible distribution.
+    pose). An underactuated robot (:mod:`cdpr_dynamics.mechanics.underactuated`) takes its
+    tensions from the balance, at the equilibrium with the pose's cable lengths where the pose
+    is not one (``balance``, warned). Refuses (AnalysisError) a zero-length cable, crossing
+    cables, a structure matrix of rank below min(cables, DOFs), an infeasible distribution
+    and, underactuated, a slack cable or an unstable equilibrium.
     """
     position = settings.initial_position_m if position_m is None else position_m
     rotation = settings.initial_rotation if rotation is None else rotation
@@ -85,11 +94,18 @@ def equilibrium(settings: Settings, position_m=None, rotation=None,
     except GeometryError as exc:
         raise AnalysisError(str(exc)) from None
     _check_design(settings, geo)
-    wrench = required_wrench(settings.robot, settings.external_force_n,
-                             settings.external_moment_nm)
-    result = (solver or new_tension_solver(settings)).solve(geo.structure_matrix, wrench)
-    if not result.feasible:
-        raise AnalysisError(f'infeasible tension distribution: {result.reason}')
+    held = None
+    if is_underactuated(settings.robot):
+        held = _underactuated_balance(settings, geo)
+        geo, residual = held.geometry, held.residual
+        result = TensionResult.solved(held.tension_n, float(np.abs(residual).max()), 0.0, 0.0)
+    else:
+        wrench = required_wrench(settings.robot, settings.external_force_n,
+                                 settings.external_moment_nm)
+        result = (solver or new_tension_solver(settings)).solve(geo.structure_matrix, wrench)
+        if not result.feasible:
+            raise AnalysisError(f'infeasible tension distribution: {result.reason}')
+        residual = geo.structure_matrix @ result.tension_n - wrench
     cables = CableSet(geo.chord_m, result.tension_n, settings.cable.ea_n,
                       settings.cable.weight_per_length_n_per_m, settings.robot.gravity_m_s2)
     # its cached length_m and unit are the geometry's (the same numbers: |l_i|, l_i / |l_i|)
@@ -97,11 +113,35 @@ def equilibrium(settings: Settings, position_m=None, rotation=None,
     ea = settings.cable.ea_n
     chord = Equilibrium(geo, result, cables, 'chord', result.tension_n[:, None] * geo.unit,
                         geo.length_m * ea / (ea + result.tension_n),
-                        geo.structure_matrix @ result.tension_n - wrench, result.iterations)
+                        residual, result.iterations, balance_warnings(held), balance=held)
     try:
         return equilibrium_for(settings, chord, method, start)
     except StaticsError as exc:
         raise AnalysisError(str(exc)) from None
+
+
+def _underactuated_balance(settings: Settings, geo: Geometry) -> Balance:
+    """:func:`cdpr_dynamics.mechanics.underactuated.balance` for ``settings``' robot, its
+    refusals as AnalysisError; the equilibrium's geometry checked as the given pose's is."""
+    try:
+        held = balance(settings.robot, geo, settings.cable.ea_n, settings.tension_min_n,
+                       settings.tension_max_n, settings.external_force_n,
+                       settings.external_moment_nm)
+    except (UnderactuatedError, GeometryError) as exc:
+        raise AnalysisError(str(exc)) from None
+    if held.moved:
+        _check_design(settings, held.geometry)
+    return held
+
+
+def balance_warnings(held: Balance | None) -> tuple[str, ...]:
+    """The warning that the pose was not an equilibrium of the underactuated robot, with the
+    distance to the one analysed."""
+    if held is None or not held.moved:
+        return ()
+    return (f'underactuated: the pose is not an equilibrium; analysed at the equilibrium with '
+            f'its cable lengths, {np.round(held.geometry.position_m, 4).tolist()} m, '
+            f'{held.distance_m:.4g} m and {math.degrees(held.angle_rad):.3g} deg away',)
 
 
 def equilibrium_summary(settings: Settings, eq: Equilibrium) -> dict:
@@ -114,10 +154,18 @@ def equilibrium_summary(settings: Settings, eq: Equilibrium) -> dict:
     moment = float(np.linalg.norm(residual[3:])) if residual.size > 3 else 0.0
     scale = weight if weight > 0 else settings.tension_max_n
     relative = max(force, moment / arm if arm > 0 else 0.0) / scale
-    return {'statics': eq.statics, 'residual_n': force, 'residual_nm': moment,
-            'relative_residual': relative, 'iterations': int(eq.iterations),
-            'end_force_n': np.asarray(eq.end_force_n).tolist(),
-            'unstretched_length_m': np.asarray(eq.unstretched_length_m).tolist()}
+    summary = {'statics': eq.statics, 'residual_n': force, 'residual_nm': moment,
+               'relative_residual': relative, 'iterations': int(eq.iterations),
+               'end_force_n': np.asarray(eq.end_force_n).tolist(),
+               'unstretched_length_m': np.asarray(eq.unstretched_length_m).tolist()}
+    if eq.balance is not None:
+        held = eq.balance
+        summary['underactuated'] = {
+            'position_m': held.geometry.position_m.tolist(),
+            'orientation': matrix_to_quaternion(held.geometry.rotation).tolist(),
+            'distance_m': held.distance_m, 'angle_rad': held.angle_rad,
+            'moved': held.moved, 'iterations': held.iterations}
+    return summary
 
 
 def build_system(settings: Settings, eq: Equilibrium, method: str | None = None,

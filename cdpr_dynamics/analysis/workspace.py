@@ -19,7 +19,8 @@ section 6):
   largest extra force, N, the platform takes in its worst direction; unit facet normals of
   the 6-D wrench space for a rigid platform); negative outside the feasible set (how far).
   (The least-norm distribution sits on T_min at most poses, so its own distance from the
-  box is 0 nearly everywhere and maps nothing.);
+  box is 0 nearly everywhere and maps nothing.) An underactuated robot's tensions are
+  determined: its margin is the least distance of a tension from the box, at the equilibrium;
 * ``structure_matrix_condition`` sigma_max / sigma_min of W^T (inf where rank deficient);
 * ``max_sag_parameter``: the largest Irvine lambda^2 over the cables at the model's statics;
 * ``lowest_platform_hz``, ``platform_modes_hz``: modes of kind ``platform`` in [0, f_max] and
@@ -34,9 +35,11 @@ section 6):
 * ``method``, ``elements_per_cable``: the model the row was computed with;
 * ``compute_s``: the wall time of the row.
 
-**Status** (never an exception, never a missing row): ``ok``; ``outside`` (a pose outside the
-frame or on an anchor), ``rank_deficient``, ``crossing``, ``infeasible`` (no tension
-distribution in the box, chord or sag-consistent), ``method_invalid`` (the model refuses the
+**Status** (never an exception, never a missing row): ``ok``; ``outside`` (no such pose: not
+finite, or an attachment on its anchor), ``rank_deficient``, ``crossing``, ``infeasible`` (no
+tension distribution in the box, chord or sag-consistent; an underactuated robot's slack
+cable), ``unstable`` (an underactuated robot's equilibrium that gravity and the cables do not
+hold), ``method_invalid`` (the model refuses the
 state: slack, no catenary spanning the chord, ``auto`` finding no model), ``error`` (any other
 failure of the library at that pose, its exception's first line); ``failed`` is the
 engine's (a task that kept failing: a worker lost, an environment without the package).
@@ -63,14 +66,15 @@ from cdpr_dynamics.analysis.pipeline import (AnalysisError, Equilibrium, build_s
 from cdpr_dynamics.analysis.config import Settings, check_names, check_value, settings_from_params
 from cdpr_dynamics.dynamics.system import frequency_response
 from cdpr_dynamics.mechanics.feasibility import WrenchSet
+from cdpr_dynamics.mechanics.underactuated import is_underactuated
 from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.dynamics.modes import modes
 from cdpr_dynamics.mechanics.robot import (GeometryError, geometry, quaternion_to_matrix,
                                            required_wrench)
 from cdpr_dynamics.selection.auto import choose_model
 
-STATUSES = ('ok', 'outside', 'rank_deficient', 'crossing', 'infeasible', 'method_invalid',
-            'error', 'failed')
+STATUSES = ('ok', 'outside', 'rank_deficient', 'crossing', 'infeasible', 'unstable',
+            'method_invalid', 'error', 'failed')
 #: The SPEC section 6 columns, then what the row was computed with.
 COLUMNS = ('x_m', 'y_m', 'z_m', 'qx', 'qy', 'qz', 'qw', 'status', 'reason', 'tensions_n',
            'tension_margin_n', 'structure_matrix_condition', 'max_sag_parameter',
@@ -83,10 +87,11 @@ INT_COLUMNS = ('auto_elements', 'elements_per_cable')
 DEFAULT_CHUNK = 16
 
 #: equilibrium()'s refusals by the words of their one-line messages, first match wins.
-_STATICS_KINDS = (('outside', ('outside the frame', 'zero length', 'not finite')),
+_STATICS_KINDS = (('outside', ('zero length', 'not finite')),
                   ('rank_deficient', ('structure matrix has rank',)),
                   ('crossing', (' cross',)),
-                  ('infeasible', ('infeasible tension', 'sag-consistent')))
+                  ('infeasible', ('infeasible tension', 'sag-consistent', 'is slack')),
+                  ('unstable', ('unstable',)))
 
 
 class WorkspaceError(ValueError):
@@ -98,6 +103,7 @@ def statics_status(message: str) -> str:
     for kind, words in _STATICS_KINDS:
         if any(word in message for word in words):
             return kind
+    return 'error'
     return 'error'
 
 
@@ -332,12 +338,17 @@ def _fill(row, settings, pose, solver, previous, hint, auto_columns):
         raise _Refused('outside', str(exc)) from None
     wrench = required_wrench(settings.robot, settings.external_force_n,
                              settings.external_moment_nm)
-    row['tension_margin_n'] = WrenchSet(geo.structure_matrix, settings.tension_min_n,
-                                        settings.tension_max_n, wrench).margin(np.zeros(3))
+    if not is_underactuated(settings.robot):
+        row['tension_margin_n'] = WrenchSet(geo.structure_matrix, settings.tension_min_n,
+                                            settings.tension_max_n, wrench).margin(np.zeros(3))
     try:
         chord = equilibrium(settings, position, rotation, solver=solver)
     except AnalysisError as exc:
         raise _Refused(statics_status(str(exc)), str(exc)) from None
+    if is_underactuated(settings.robot):
+        tension = chord.tensions.tension_n
+        row['tension_margin_n'] = float(min(np.min(tension - settings.tension_min_n),
+                                            np.min(settings.tension_max_n - tension)))
     row['tensions_n'] = chord.tensions.tension_n.tolist()
     method, elements = settings.method, settings.elements_per_cable
     if auto_columns or method == 'auto':

@@ -36,7 +36,7 @@ DOF_NAMES = ('x', 'y', 'z', 'rx', 'ry', 'rz')
 
 
 class GeometryError(ValueError):
-    """A pose the robot cannot take (attachment at an anchor, outside the frame, ...)."""
+    """A pose the robot cannot take (not finite, an attachment at its anchor)."""
 
 
 def quaternion_to_matrix(q) -> np.ndarray:
@@ -144,12 +144,6 @@ class Robot:
         """Axis-aligned box spanned by the anchors (the frame), lower and upper corner."""
         return self.anchors_m.min(axis=0), self.anchors_m.max(axis=0)
 
-    @functools.cached_property
-    def frame_limits(self) -> tuple[list[float], list[float]]:
-        """:attr:`frame_bounds_m` as Python floats (per-pose tests on three numbers)."""
-        lo, hi = self.frame_bounds_m
-        return lo.tolist(), hi.tolist()
-
     def platform_mass_matrix(self, rotation: np.ndarray) -> np.ndarray:
         """diag(m I, R I_P R^T) of the platform DOFs (Eq. 7, inertia in the world frame)."""
         n = self.platform_dofs
@@ -186,11 +180,12 @@ class Geometry:
         return g
 
 
-def geometry(robot: Robot, position_m, rotation=None, *, check_frame: bool = True) -> Geometry:
+def geometry(robot: Robot, position_m, rotation=None) -> Geometry:
     """Cable vectors, lengths, unit vectors and structure matrix at pose (p, R).
 
-    Raises :class:`GeometryError` when the position is not finite, lies outside the frame
-    (with ``check_frame``) or puts an attachment on its anchor. Called on every pose update:
+    The platform may be anywhere, below or beside its anchors (a suspended robot) included.
+    Raises :class:`GeometryError` when the pose is not finite or puts an attachment on its
+    anchor (a zero-length cable). Called on every pose update:
     its tests run on the three coordinates as Python floats and the arrays take one numpy call
     per line (``|l_i|`` as ``np.linalg.norm`` computes it, without its argument handling).
     """
@@ -199,12 +194,6 @@ def geometry(robot: Robot, position_m, rotation=None, *, check_frame: bool = Tru
     rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
     if not (all(map(math.isfinite, xyz)) and (rotation is None or np.isfinite(rot).all())):
         raise GeometryError('pose is not finite')
-    if check_frame:
-        lo, hi = robot.frame_bounds_m
-        for x, low, high in zip(xyz, *robot.frame_limits):
-            if high > low and (x < low - 1e-9 or x > high + 1e-9):
-                raise GeometryError(f'position {np.round(p, 4).tolist()} m is outside the frame '
-                                    f'{lo.tolist()} .. {hi.tolist()} m')
     if robot.point_mass:          # every b_i = 0: r_i = R b_i = 0
         lever = np.zeros(robot.anchors_m.shape)
         chord = robot.anchors_m - p

@@ -198,6 +198,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
     residual = cable_wrench(-state.force_n, lever, ndof) - wrench
     rho = 0.0                       # proximal weight: grows while steps are cut, falls after
     iterations = 0
+    reach = None                    # underactuated: the projector on what the cables reach
     for iterations in range(1, max_iterations + 1):
         a_mat = structure_of(-d_force, lever, ndof)
         if not _all(np.isfinite(a_mat), axis=None):
@@ -205,20 +206,25 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
             raise StaticsError(f'no sag-consistent tension distribution: cable {i} is at the '
                                f'fold of its catenary (T = {tension[i]:.4g} N: the least '
                                'tension it can have at this pose)')
-        proposal = qp.solve(a_mat, a_mat @ tension - residual, rho, tension)
+        if n < ndof:
+            reach = _range_projector(a_mat)
+            residual_in = reach @ residual
+        else:
+            residual_in = residual
+        proposal = qp.solve(a_mat, a_mat @ tension - residual_in, rho, tension)
         if not proposal.feasible:
             raise StaticsError(f'no sag-consistent tension distribution in [{t_min_n:g}, '
                                f'{t_max_n:g}] N (sagged cables, SQP iteration {iterations}): '
                                f'{proposal.reason}')
         step = proposal.tension_n - tension
-        size = _max(np.abs(residual) / tol)
+        size = _max(np.abs(residual_in) / tol)
         if size <= 1.0 and _max(np.abs(step)) <= step_tol and rho > 0.0:
             rho = 0.0           # a proximal step is short by 1/(1 + rho): judge the plain one
-            proposal = qp.solve(a_mat, a_mat @ tension - residual, rho, tension)
+            proposal = qp.solve(a_mat, a_mat @ tension - residual_in, rho, tension)
             step = proposal.tension_n - tension
         if size <= 1.0 and _max(np.abs(step)) <= step_tol:
             return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
-                              tuple(warnings), qp)
+                              tuple(warnings) + _unreached(residual, tol), qp)
         alpha = 1.0
         for _ in range(30 if size > 1.0 else FEASIBLE_HALVINGS):
             trial = _clip(tension + alpha * step, lower, t_max_n)
@@ -230,7 +236,8 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
                 cables.with_tension(trial), start=guess, warm_only=True)
             if all(trial_state.valid.tolist()):
                 trial_residual = cable_wrench(-trial_state.force_n, lever, ndof) - wrench
-                trial_size = _max(np.abs(trial_residual) / tol)
+                trial_size = _max(np.abs(trial_residual if reach is None
+                                         else reach @ trial_residual) / tol)
                 if trial_size <= max((1.0 - 1e-4 * alpha) * size, 1.0):
                     break
             alpha *= 0.5
@@ -241,8 +248,9 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
         d_force, d_length = trial_sensitivity
         rho = rho / 4.0 if alpha == 1.0 else max(4.0 * rho, 1.0) if alpha < 0.25 else rho
         rho = 0.0 if rho < 1e-3 else rho
-    worst = int(np.argmax(np.abs(residual) / tol))
-    converged = bool(np.all(np.abs(residual) <= tol))
+    reached = residual if reach is None else reach @ residual
+    worst = int(np.argmax(np.abs(reached) / tol))
+    converged = bool(np.all(np.abs(reached) <= tol))
     held = np.flatnonzero((lower > t_min_n) & (tension <= 1.1 * lower))
     cause = (f'; cable {held[0]} is at {tension[held[0]]:.4g} N, near the least tension '
              f'({lower[held[0]] / EXIST_MARGIN:.4g} N) at which a taut catenary spans its chord, '
@@ -253,10 +261,28 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
                         f'{np.abs(residual[:3]).max():.2g} N) but the SQP did not settle on the '
                         f'least-norm distribution in {iterations} iterations{cause}')
         return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
-                          tuple(warnings), qp)
+                          tuple(warnings) + _unreached(residual, tol), qp)
     raise StaticsError(f'no sag-consistent tension distribution: the SQP did not converge in '
                        f'{iterations} iterations (residual {WRENCH_AXES[worst]} '
-                       f'{residual[worst]:.3g}){cause}')
+                       f'{reached[worst]:.3g}){cause}')
+
+
+def _range_projector(a_mat: np.ndarray) -> np.ndarray:
+    """(d, d) orthogonal projector on the range of ``a_mat`` (d, n): the wrenches n < d cables
+    can produce."""
+    basis = np.linalg.svd(a_mat, full_matrices=False)[0]
+    return basis @ basis.T
+
+
+def _unreached(residual: np.ndarray, tol: np.ndarray) -> tuple[str, ...]:
+    """The warning on the net wrench fewer cables than DOFs leave, where above ``tol``."""
+    if np.all(np.abs(residual) <= tol):
+        return ()
+    force = float(np.linalg.norm(residual[:3]))
+    moment = float(np.linalg.norm(residual[3:])) if residual.size > 3 else 0.0
+    return (f'underactuated: the sagged cables leave a net {force:.3g} N, {moment:.3g} N m on '
+            'the platform along directions they cannot pull (the equilibrium of the sagged '
+            'cables lies that much off the chord one)',)
 
 
 def _lift(cables, candidates, tension, lower, t_max_n):
@@ -339,7 +365,9 @@ class Equilibrium:
     ``end_force_n`` (n, 3) the force of each cable on the platform; ``unstretched_length_m``
     L0 per cable (straight: L EA/(EA + T); sagged: the catenary's); ``residual`` (ndof,) the
     wrench the cables miss (N, then N m); ``iterations`` of the QP (chord) or the SQP (sag);
-    ``sag`` the sag solution (warm start of the next pose), else None.
+    ``sag`` the sag solution (warm start of the next pose), else None; ``balance`` an
+    underactuated robot's equilibrium (:mod:`cdpr_dynamics.mechanics.underactuated`), else
+    None.
     """
 
     geometry: Geometry
@@ -352,6 +380,7 @@ class Equilibrium:
     iterations: int = 0
     warnings: tuple[str, ...] = ()
     sag: SagStatics | None = None
+    balance: object = None
 
 
 def equilibrium_for(settings, eq: Equilibrium, method: str | None,
@@ -376,4 +405,4 @@ def equilibrium_for(settings, eq: Equilibrium, method: str | None,
                       sag_state=sag.state)
     return Equilibrium(eq.geometry, result, cables, 'sag', sag.end_force_n,
                        sag.state.unstrained_length_m, sag.residual, sag.iterations,
-                       sag.warnings, sag)
+                       eq.warnings + sag.warnings, sag, eq.balance)
