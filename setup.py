@@ -26,14 +26,14 @@ setup(
     entry_points={
         'console_scripts': [
             'dynamics_node = cdpr_dynamics.ros.process:main',
-            'cdpr_analyze = cdpr_dynamics.cli.analyze:main',
-            'cdpr_bench = cdpr_dynamics.cli.bench:main',
-            'cdpr_record = cdpr_dynamics.cli.record:main',
-            'cdpr_demo = cdpr_dynamics.cli.demo:main',
-            'cdpr_tradeoff = cdpr_dynamics.cli.tradeoff:main',
-            'cdpr_replay = cdpr_dynamics.cli.replay:main',
-            'cdpr_workspace = cdpr_dynamics.cli.workspace:main',
-            'cdpr_calibrate = cdpr_dynamics.cli.calibrate:main',
+            'cdpr_analyze = cdpr_dynamics.cli:cdpr_analyze',
+            'cdpr_bench = cdpr_dynamics.cli:cdpr_bench',
+            'cdpr_record = cdpr_dynamics.cli:cdpr_record',
+            'cdpr_demo = cdpr_dynamics.cli:cdpr_demo',
+            'cdpr_tradeoff = cdpr_dynamics.cli:cdpr_tradeoff',
+            'cdpr_replay = cdpr_dynamics.cli:cdpr_replay',
+            'cdpr_workspace = cdpr_dynamics.cli:cdpr_workspace',
+            'cdpr_calibrate = cdpr_dynamics.cli:cdpr_calibrate',
         ],
     },
 )

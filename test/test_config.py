@@ -527,6 +527,48 @@ def test_ctrl_c_ends_a_busy_tool_with_one_line(ros_env, tmp_path, tool, args, bu
                 os.kill(k, signal.SIGKILL)
 
 
+def entered(stderr_lines: list) -> bool:
+    """True once the console script's entry has run: ``-X importtime`` prints an import's
+    line when it completes, so a line after ``cdpr_dynamics.cli``'s (one of the tool module's
+    own imports) means the entry installed its handler and began importing the tool."""
+    names = [line.rsplit('|', 1)[-1].strip() for line in stderr_lines
+             if line.startswith('import time:')]
+    return 'cdpr_dynamics.cli' in names and names[-1] != 'cdpr_dynamics.cli'
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize('tool,args', [
+    ('cdpr_analyze', ['--method', 'fem', '--elements', '48', '--duration', '60']),
+    ('cdpr_tradeoff', ['--csv', 'out.csv']),
+])
+@pytest.mark.parametrize('delay_s', [0.0, 0.1, 0.4, 1.0])
+def test_ctrl_c_during_the_imports_ends_a_tool_with_one_line(ros_env, tmp_path, tool, args,
+                                                             delay_s):
+    """SIGINT at several delays after the entry began importing the tool (0: at once; the
+    heavy imports take about a second): one line, status 130, no traceback."""
+    env = {**ros_env, 'OMP_NUM_THREADS': '1', 'PYTHONPROFILEIMPORTTIME': '1'}
+    args = [str(tmp_path / a) if a.startswith('out.') else a for a in args]
+    proc = subprocess.Popen([installed(tool), *args], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    lines = []
+    try:
+        for line in proc.stderr:
+            lines.append(line.rstrip('\n'))
+            if entered(lines):
+                break
+        assert proc.poll() is None, lines[-5:]
+        time.sleep(delay_s)            # a delay to land at different moments, not a wait
+        os.killpg(proc.pid, signal.SIGINT)
+        lines += proc.communicate(timeout=60)[1].splitlines()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    said = [line for line in lines if not line.startswith('import time:')]
+    assert proc.returncode == 130, (proc.returncode, said[-20:])
+    assert said == [f'{tool}: interrupted'], said[-20:]
+
+
 def test_readme_documents_every_parameter():
     text = (REPO / 'README.md').read_text()
     section = text[text.index('## Configuration'):text.index('## How the numerics work')]
