@@ -1,6 +1,7 @@
 """The package builds in a real Jazzy workspace: package.xml, setup.py, launch file, imports."""
 import ast
 import configparser
+import importlib
 import py_compile
 import re
 import sys
@@ -110,13 +111,16 @@ def test_setup_installs_the_share_folder_and_every_executable():
     for data in ("'resource/' + package_name", "['package.xml']", "glob('config/*.yaml')",
                  "glob('launch/*.py')"):
         assert data in text
-    scripts = set(re.findall(r"'(\w+) = (cdpr_dynamics[\w.]*):main'", text))
-    names = {name for name, _ in scripts}
+    scripts = set(re.findall(r"'(\w+) = (cdpr_dynamics[\w.]*):(\w+)'", text))
+    names = {name for name, _, _ in scripts}
     assert {'dynamics_node', 'cdpr_analyze', 'cdpr_tradeoff', 'cdpr_record', 'cdpr_replay',
             'cdpr_demo', 'cdpr_bench'} <= names
-    for _, module in scripts:     # each entry point's module exists and has main()
-        source = ROOT / (module.replace('.', '/') + '.py')
-        assert 'def main(' in source.read_text(), module
+    for name, module, attribute in scripts:   # each entry point exists; a tool's has main()
+        entry = getattr(importlib.import_module(module), attribute)
+        assert callable(entry), name
+        tool = getattr(entry, 'module', module)
+        source = ROOT / (tool.replace('.', '/') + '.py')
+        assert 'def main(' in source.read_text(), (name, tool)
     assert (ROOT / 'resource' / 'cdpr_dynamics').exists()
     assert 'script_dir=$base/lib/cdpr_dynamics' in (ROOT / 'setup.cfg').read_text()
 

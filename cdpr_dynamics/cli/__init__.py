@@ -75,6 +75,7 @@ def entry_point(prog: str, module: str):
         signal.signal(signal.SIGINT, on_sigint)
         return importlib.import_module(module).main()
     run.__name__ = run.__qualname__ = prog
+    run.module = module
     return run
 
 
