@@ -10,7 +10,8 @@ acceleration). :func:`identify_record`:
    ``rest_speed_rad_s``) for at least ``min_duration_s``; the motion between them, a stretch
    that starts mid-motion included, is skipped and reported; the part of a stretch where the
    oscillation exceeds ``max_amplitude_m`` is skipped too (beyond the linear model);
-3. identifies each stretch's modes by the eigensystem realisation algorithm (ERA: the block
+3. identifies each stretch's modes (its first ``max_window_s``) by the eigensystem
+   realisation algorithm (ERA: the block
    Hankel matrix of the free decay, its SVD, poles from the shifted Hankel matrix) over a range
    of model orders, keeps the poles that are stable over the orders, and refines them by a
    variable-projection least-squares fit of the decay sum_r Re(a_r e^{s_r t}) to the samples,
@@ -50,6 +51,7 @@ class Options:
     max_amplitude_m: float = 0.1
     max_damping_ratio: float = 0.3
     max_modes: int = 12
+    max_window_s: float = 30.0
     min_snr: float = 8.0
 
 
@@ -96,10 +98,9 @@ def pose_dofs(position_m, quaternion) -> np.ndarray:
 
 
 def mean_pose(position_m, quaternion) -> np.ndarray:
-    """(7,): the mean position and the mean orientation (qx qy qz qw)."""
-    return np.concatenate([np.mean(position_m, axis=0),
-                           Rotation.from_quat(np.asarray(quaternion, dtype=float)).mean()
-                           .as_quat()])
+    """(7,): the mean position and the mean orientation (qx qy qz qw, qw >= 0)."""
+    q = Rotation.from_quat(np.asarray(quaternion, dtype=float)).mean().as_quat()
+    return np.concatenate([np.mean(position_m, axis=0), q if q[3] >= 0 else -q])
 
 
 def uniform_pieces(t_s, values, max_gap_s: float):
@@ -158,19 +159,23 @@ def rest_mask(t: np.ndarray, dofs: np.ndarray, kind: str, options: Options) -> n
 
 def era_poles(y: np.ndarray, dt: float, orders, block_rows: int):
     """Continuous-time poles and mode shapes (per order) of the free decay ``y`` (n, c) by
-    ERA: H0 = U S V^T (block Hankel, ``block_rows`` blocks), A = S^-1/2 U^T H1 V S^-1/2."""
+    ERA: H0 = U S V^T (block Hankel, ``block_rows`` blocks), A = S^-1/2 U^T H1 V S^-1/2,
+    from the small products H0 H0^T = U S^2 U^T and H1 H0^T (V = H0^T U S^-1)."""
     n, c = y.shape
     cols = n - block_rows
     idx = np.arange(block_rows)[:, None] + np.arange(cols + 1)[None, :]
     big = y[idx].transpose(0, 2, 1).reshape(block_rows * c, cols + 1)    # (i c, j + 1)
     h0, h1 = big[:, :-1], big[:, 1:]
-    u, s, vt = np.linalg.svd(h0, full_matrices=False)
+    s2, u = np.linalg.eigh(h0 @ h0.T)
+    s2, u = s2[::-1], u[:, ::-1]
+    s = np.sqrt(np.clip(s2, 0.0, None))
+    cross = h1 @ h0.T
     out = []
     for order in orders:
-        if order > s.size or s[order - 1] <= 0:
+        if order > s.size or s[order - 1] <= 1e-10 * s[0]:
             continue
         root = 1.0 / np.sqrt(s[:order])
-        a = (root[:, None] * (u[:, :order].T @ h1 @ vt[:order].T)) * root[None, :]
+        a = (root[:, None] * (u[:, :order].T @ cross @ u[:, :order]) / s[:order]) * root[None, :]
         mu, psi = np.linalg.eig(a)
         with np.errstate(divide='ignore', invalid='ignore'):
             poles = np.log(mu.astype(complex)) / dt
@@ -236,7 +241,9 @@ def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 3):
     def solve(x):
         p = x[:m] + 1j * x[m:]
         a = np.concatenate([_basis(t, p), np.ones((n, 1))], axis=1)
-        coef = np.linalg.lstsq(a, ys, rcond=None)[0]
+        norm = np.linalg.norm(a, axis=0)
+        an = a / norm                        # normal equations of unit columns: (2m+1)^2
+        coef = np.linalg.solve(an.T @ an, an.T @ ys) / norm[:, None]
         return (a @ coef - ys).ravel(), a, coef
 
     def jacobian(x, r):
@@ -404,7 +411,8 @@ def identify_record(t_s, samples, kind: str = 'pose', options: Options = Options
                     result.skipped.append(span + (f'at rest for {(end - first) * dt:.3g} s, '
                                                   f'less than {options.min_duration_s:g} s',))
                 continue
-            modes = identify_decay(t[first:end], y[first:end], kind, options, f_max)
+            last = min(end, first + int(round(options.max_window_s / dt)) + 1)
+            modes = identify_decay(t[first:last], y[first:last], kind, options, f_max)
             if not modes:
                 result.skipped.append(span + ('no mode stands out of the noise',))
                 continue

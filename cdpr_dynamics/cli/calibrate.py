@@ -14,6 +14,8 @@ exit status 1.
 """
 from __future__ import annotations
 
+from cdpr_dynamics.cli import blas_threads  # noqa: F401  (before numpy: one BLAS thread)
+
 import argparse
 import json
 import sys
