@@ -1,4 +1,4 @@
-"""The ``frequency_response`` service (rcl_interfaces/srv/GetParameters, SPEC section 5).
+"""The ``frequency_response`` service (rcl_interfaces/srv/GetParameters).
 
 Request ``names``: the arrays wanted (:data:`ARRAYS`) mixed with ``key=value`` overrides of the
 sweep for this call (:data:`OVERRIDES`). Response ``values``: one ParameterValue per name that
@@ -10,8 +10,10 @@ Server side: :func:`parse_request`, :func:`response_size_error`, :func:`settings
 get a STRING saying which entry holds it), a request of more than :data:`MAX_NAMES` names or
 whose reply would exceed ``node.frf_max_values`` doubles (distinct arrays x points) is refused
 before any work, with the numbers; names echoed in reasons are cut to 80 characters.
-Client side: :func:`request_message`, :func:`unpack_response` and the blocking helper
-:func:`call_frequency_response`, which returns numpy arrays and raises with the reason.
+Client side: :func:`request_message`, :func:`unpack_response`, :func:`wait_for_frequency_response`
+(until a round trip has been made) and the blocking helper :func:`call_frequency_response`,
+which returns numpy arrays, sends again a call whose reply did not come, and raises with the
+reason.
 """
 from __future__ import annotations
 
@@ -201,13 +203,81 @@ def unpack_response(request: GetParameters.Request, response: GetParameters.Resp
 
 
 _CLIENTS: 'weakref.WeakKeyDictionary' = weakref.WeakKeyDictionary()
+PING_FIRST_S = 0.25     # the first wait for the reply to an empty request (then doubled)
+CALL_FIRST_S = 2.0      # the first wait for the reply to a call before it is sent again
 
 
-def _client(node, service: str):
+class _Client:
+    """A node's client of one service and whether a round trip has been made through it."""
+
+    def __init__(self, node, service: str):
+        self.client = node.create_client(GetParameters, service)
+        self.ready = False
+
+
+def _client(node, service: str) -> _Client:
     clients = _CLIENTS.setdefault(node, {})
     if service not in clients:
-        clients[service] = node.create_client(GetParameters, service)
+        clients[service] = _Client(node, service)
     return clients[service]
+
+
+def frequency_response_client(node, service: str = SERVICE):
+    """The rclpy client of ``service`` that this module's helpers use for ``node`` (made once):
+    a reply reaches the client whose round trip :func:`wait_for_frequency_response` made."""
+    return _client(node, service).client
+
+
+def _wait(node, future, seconds: float, spin: bool) -> bool:
+    """Wait up to ``seconds`` for ``future`` (spinning ``node`` here, or not); done?"""
+    if spin:
+        import rclpy
+        rclpy.spin_until_future_complete(node, future, executor=node.executor,
+                                         timeout_sec=seconds)
+    else:
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        done.wait(seconds)
+    return future.done()
+
+
+def _call(node, client, request, deadline: float, first_s: float, spin: bool):
+    """The future of ``request`` answered before ``deadline`` (monotonic), or None. A call
+    whose reply has not come within its wait (``first_s``, then doubled) is sent again: a
+    reply lost in transport is not waited for until the deadline, and the server answers
+    equal calls at one state once (its cache, or the computation already under way)."""
+    wait_s = first_s
+    while True:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return None
+        future = client.call_async(request)
+        if _wait(node, future, min(wait_s, remaining), spin):
+            return future
+        client.remove_pending_request(future)
+        wait_s *= 2
+
+
+def wait_for_frequency_response(node, timeout_s: float = 10.0, service: str = SERVICE,
+                                spin: bool = True) -> bool:
+    """Wait until ``service`` answers ``node``; True when it did within ``timeout_s``.
+
+    ``wait_for_service`` says that this client's request writer and reply reader have matched
+    the server's; the server's reply writer may not have matched this client's reply reader
+    yet, and a reply sent before it has is dropped (Fast DDS waits 100 ms for the match, less
+    than discovery takes on a busy machine). So an empty request (answered at once, without
+    work) is sent, and sent again, until its reply comes: the round trip proves the match.
+    Done once per node and service (:func:`call_frequency_response` calls it)."""
+    entry = _client(node, service)
+    if entry.ready:
+        return True
+    deadline = time.monotonic() + timeout_s
+    if not entry.client.wait_for_service(timeout_sec=timeout_s):
+        return False
+    ping = _call(node, entry.client, GetParameters.Request(names=[]), deadline, PING_FIRST_S,
+                 spin)
+    entry.ready = ping is not None
+    return entry.ready
 
 
 def call_frequency_response(node, names=None, overrides: dict | None = None,
@@ -219,24 +289,17 @@ def call_frequency_response(node, names=None, overrides: dict | None = None,
     ``{'method': 'spring', 'n_points': 100}``. ``spin=True`` spins ``node`` here until the
     answer arrives (a plain script); ``spin=False`` only waits, for a node that an executor
     spins in another thread. Never call it from a callback of the executor spinning ``node``.
+    The first call waits until the service can answer (:func:`wait_for_frequency_response`);
+    a call whose reply does not come within ``CALL_FIRST_S`` (then twice, four times that) is
+    sent again, within ``timeout_s`` in all.
     """
-    client = _client(node, service)
     deadline = time.monotonic() + timeout_s
-    if not client.wait_for_service(timeout_sec=timeout_s):
+    if not wait_for_frequency_response(node, timeout_s, service, spin):
         raise FrequencyResponseError(f'service {service} not available after {timeout_s:g} s')
     request = request_message(names, overrides)
-    future = client.call_async(request)
-    remaining = max(0.0, deadline - time.monotonic())
-    if spin:
-        import rclpy
-        rclpy.spin_until_future_complete(node, future, executor=node.executor,
-                                         timeout_sec=remaining)
-    else:
-        done = threading.Event()
-        future.add_done_callback(lambda _: done.set())
-        done.wait(remaining)
-    if not future.done():
-        client.remove_pending_request(future)
+    future = _call(node, _client(node, service).client, request, deadline, CALL_FIRST_S,
+                   spin)
+    if future is None:
         raise FrequencyResponseError(f'service {service} did not answer within {timeout_s:g} s')
     if future.exception() is not None:
         raise FrequencyResponseError(f'service {service} failed: {future.exception()}')

@@ -30,8 +30,9 @@ from cdpr_dynamics.analysis.live import LivePredictor, time_step_warnings
 from cdpr_dynamics.mechanics.robot import geometry, required_wrench
 from cdpr_dynamics.mechanics.tensions import TensionSolver, closest_tensions
 from msg_adapters import diagnostics as diag
-from msg_adapters.frf_service import (ARRAYS, MAX_NAMES, pack_response, parse_request,
-                                      response_size_error, unpack_response)
+from msg_adapters.frf_service import (ARRAYS, MAX_NAMES, frequency_response_client,
+                                      pack_response, parse_request, response_size_error,
+                                      unpack_response, wait_for_frequency_response)
 from msg_adapters.inputs import InputHandler
 from msg_adapters.pose import pose_message
 from msg_adapters.stamps import StampPolicy
@@ -419,15 +420,12 @@ class NodeUnderLoad:
 
 
 def frf_call(node, names, timeout_s=60.0):
-    """Start a frequency_response call from ``node`` (its one client, made on first use and
-    kept: a client made just before its call may lose the reply under Fast DDS, whose service
-    gives up on a response reader not matched within 100 ms); its future."""
+    """Start a frequency_response call from ``node`` (an executor spins it elsewhere) once a
+    round trip through its client has been made (the service's reply writer has matched the
+    client's reply reader: a reply sent before is dropped); its future."""
     from rcl_interfaces.srv import GetParameters
-    client = getattr(node, '_frf_client', None)
-    if client is None:
-        client = node._frf_client = node.create_client(GetParameters, 'frequency_response')
-    assert client.wait_for_service(timeout_sec=timeout_s)
-    return client.call_async(GetParameters.Request(names=list(names)))
+    assert wait_for_frequency_response(node, timeout_s, spin=False)
+    return frequency_response_client(node).call_async(GetParameters.Request(names=list(names)))
 
 
 def cpu_seconds(pid: int) -> float:
@@ -622,3 +620,55 @@ def main(argv=None) -> int:
 
 if __name__ == '__main__':
     sys.exit(main())
+
+
+@pytest.mark.ros
+def test_the_client_helper_sends_a_call_again_whose_reply_was_lost():
+    """A server that never answers the first call (as a reply dropped by DDS): the helper
+    sends it again after its wait and returns the second answer; before its first call it
+    made a round trip with an empty request."""
+    import rclpy
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.executors import MultiThreadedExecutor
+    from cdpr_dynamics.ros.rclpy_compat import defer_replies
+    from conftest import unique_domain_id
+    from msg_adapters import frf_service
+
+    class Dropped:
+        pass
+
+    seen = []
+
+    def on_request(request, response):
+        seen.append(list(request.names))
+        if request.names and sum(names == seen[-1] for names in seen) == 1:
+            return Dropped()                    # never sent
+        return pack_response(request.names, {'frequency_hz': np.arange(3.0)}, '', response)
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=unique_domain_id())
+    executor = MultiThreadedExecutor(num_threads=2, context=context)
+    server = rclpy.create_node('lossy_server', context=context)
+    client = rclpy.create_node('helper_client', context=context)
+    service = server.create_service(GetParameters, frf_service.SERVICE, on_request)
+    defer_replies(service, Dropped, lambda placeholder, header: None)
+    for node in (server, client):
+        executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        start = time.monotonic()
+        arrays = frf_service.call_frequency_response(client, ['frequency_hz'], timeout_s=30.0,
+                                                     spin=False)
+        waited = time.monotonic() - start
+    finally:
+        executor.shutdown()
+        spinner.join(5.0)
+        for node in (server, client):
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    np.testing.assert_array_equal(arrays['frequency_hz'], [0.0, 1.0, 2.0])
+    calls = [names for names in seen if names]
+    assert calls == [['frequency_hz'], ['frequency_hz']], seen
+    assert seen[0] == [] and seen.index(['frequency_hz']) > 0     # the round trip came first
+    assert waited >= frf_service.CALL_FIRST_S     # the second send waited for the first's reply
