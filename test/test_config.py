@@ -567,15 +567,3 @@ def test_ctrl_c_during_the_imports_ends_a_tool_with_one_line(ros_env, tmp_path, 
     said = [line for line in lines if not line.startswith('import time:')]
     assert proc.returncode == 130, (proc.returncode, said[-20:])
     assert said == [f'{tool}: interrupted'], said[-20:]
-
-
-def test_readme_documents_every_parameter():
-    text = (REPO / 'README.md').read_text()
-    section = text[text.index('## Configuration'):text.index('## How the numerics work')]
-    rows = {line.split('|')[1].strip().strip('`'): line for line in section.splitlines()
-            if line.startswith('| `')}
-    for param in PARAMETERS + NODE_PARAMETERS:
-        assert param.name in rows, f'README Configuration table lacks {param.name}'
-        assert ('**required**' in rows[param.name]) == param.required, param.name
-        if param.default not in (None, []):
-            assert f'| `{param.default}` |' in rows[param.name], param.name

@@ -14,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / 'setup.cfg'
-PATHS = ['cdpr_dynamics', 'msg_adapters', 'launch', 'test', 'setup.py']
+PATHS = ['cdpr_dynamics', 'msg_adapters', 'launch', 'test', 'doc', 'setup.py']
 
 
 def flake8_errors(paths) -> list[str]:

@@ -26,7 +26,7 @@ IMPORT_KEYS = {
     'pytest': 'python3-pytest', 'rosbags': 'python3-rosbags-pip',
     'ament_flake8': 'ament_flake8', 'ament_pep257': 'ament_pep257',
 }
-OWN = {'cdpr_dynamics', 'msg_adapters'}
+OWN = {'cdpr_dynamics', 'msg_adapters', 'cdpr_docs'}   # cdpr_docs: doc/_ext, the docs' extension
 #: modules with no rosdep key (rosdistro's rosdep/python.yaml has no rule for dask, distributed,
 #: cloudpickle or pyarrow) -> the PyPI name to pip-install: not in package.xml (an undefined
 #: key makes `rosdep install` fail), optional (imported where used: the workspace tool) and
@@ -35,7 +35,7 @@ PIP_ONLY = {'dask': 'dask[distributed]', 'distributed': 'dask[distributed]',
             'cloudpickle': 'dask[distributed]', 'pyarrow': 'pyarrow'}
 #: every package.xml key -> how rosdep resolves it on Ubuntu 24.04 / Jazzy: 'ros' (a package
 #: of jazzy/distribution.yaml, apt ros-jazzy-*), 'apt' or the PyPI name ('pip:NAME'), as
-#: rosdistro's rosdep/python.yaml says (checked by hand; the README lists the same)
+#: rosdistro's rosdep/python.yaml says (checked by hand; doc/getting_started.md lists the same)
 ROSDEP = {
     'rclpy': 'ros', 'geometry_msgs': 'ros', 'sensor_msgs': 'ros', 'diagnostic_msgs': 'ros',
     'std_msgs': 'ros', 'rcl_interfaces': 'ros', 'builtin_interfaces': 'ros',
@@ -45,7 +45,7 @@ ROSDEP = {
     'python3-numpy': 'apt', 'python3-scipy': 'apt', 'python3-yaml': 'apt',
     'python3-matplotlib': 'apt', 'python3-tqdm': 'apt', 'python3-pytest': 'apt',
     'mcap-ros2-support': 'pip:mcap-ros2-support', 'python3-qpsolvers-pip': 'pip:qpsolvers',
-    'python3-rosbags-pip': 'pip:rosbags',
+    'python3-rosbags-pip': 'pip:rosbags', 'python3-sphinx': 'apt', 'python3-myst-parser': 'apt',
 }
 
 
@@ -88,10 +88,10 @@ def test_every_imported_module_is_declared():
 
 def test_modules_without_a_rosdep_key_are_optional_and_documented():
     """A module with no rosdep rule is imported only inside the functions that use it (the
-    package imports and runs without it), is in requirements.txt, and the README's colcon
-    steps say how to pip-install it."""
-    readme = (ROOT / 'README.md').read_text()
-    section = readme[readme.index('### Run it in a ROS 2 Jazzy workspace (colcon)'):]
+    package imports and runs without it), is in requirements.txt, and the colcon steps of
+    doc/getting_started.md say how to pip-install it."""
+    readme = (ROOT / 'doc' / 'getting_started.md').read_text()
+    section = readme[readme.index('## Run it in a ROS 2 Jazzy workspace (colcon)'):]
     requirements = (ROOT / 'requirements.txt').read_text()
     for module, name in PIP_ONLY.items():
         assert re.search(rf'^{re.escape(name)}(?![\w\[-])', requirements, re.M), name
@@ -132,15 +132,16 @@ def test_launch_file_compiles(tmp_path):
 
 def test_every_key_resolves_and_the_readme_installs_the_pip_ones():
     """Each declared key is one whose rosdep rule was checked (no made-up ``-pip`` keys); the
-    README's colcon steps skip exactly the pip keys in rosdep and pip-install their packages."""
+    colcon steps of doc/getting_started.md skip exactly the pip keys in rosdep and pip-install
+    their packages."""
     root = package_xml()
-    declared = [e.text for tag in ('depend', 'exec_depend', 'test_depend')
+    declared = [e.text for tag in ('depend', 'exec_depend', 'test_depend', 'doc_depend')
                 for e in root.findall(tag)]
     assert len(declared) == len(set(declared)), 'a key declared twice'
     assert set(declared) == set(ROSDEP), set(declared) ^ set(ROSDEP)
     pip_keys = {k: v.split(':', 1)[1] for k, v in ROSDEP.items() if v.startswith('pip:')}
-    readme = (ROOT / 'README.md').read_text()
-    section = readme[readme.index('### Run it in a ROS 2 Jazzy workspace (colcon)'):]
+    readme = (ROOT / 'doc' / 'getting_started.md').read_text()
+    section = readme[readme.index('## Run it in a ROS 2 Jazzy workspace (colcon)'):]
     skipped = re.search(r'--skip-keys "([^"]+)"', section)
     assert skipped and set(skipped[1].split()) == set(pip_keys), skipped
     installed = re.search(r'\npip install ([^\n]+)', section)

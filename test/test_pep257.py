@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PATHS = ['cdpr_dynamics', 'msg_adapters', 'launch', 'test', 'setup.py']
+PATHS = ['cdpr_dynamics', 'msg_adapters', 'launch', 'test', 'doc', 'setup.py']
 
 
 def ignored_codes() -> list[str]:

@@ -1,75 +1,20 @@
 """The elastic catenary (Irvine, Cable Structures, 1981): ``catenary`` and ``catenary_exact``.
 
-Convention. One cable, unstrained length ``L0``, weight ``gamma`` per unstrained length (N/m),
-axial stiffness ``EA``, gravity along ``-e`` (``e = -g/|g|`` the unit "up", any direction). End A
-is the reference (fixed) end, end B the other one; ``l = r_B - r_A``. ``F`` is the force applied
-AT B ON the cable (it pulls B away from A for a taut cable) and ``sigma`` the unstrained arc length
-measured from B. Equilibrium of the piece [0, sigma] gives the tension vector
+One cable: unstrained length ``L0`` (m), weight ``gamma`` per unstrained length (N/m), axial
+stiffness ``EA`` (N), ``e`` the unit "up" (``-g/|g|``). End A is the anchor, end B the platform
+attachment, ``l = r_B - r_A`` (m); ``F`` (N) is the force applied at B on the cable. With
+``V = F.e``, ``H_vec = F - V e``, ``a0 = V``, ``a1 = V - gamma L0``, ``T_B = |F|``,
+``T_A = sqrt(H^2 + a1^2)``, the end position and the flexibility (m/N) are
 
-    T(sigma) t(sigma) = F - gamma sigma e,        T(sigma) = |F - gamma sigma e|,
+    l = L0/EA (F - gamma L0/2 e) + q H_vec + s e,                                    (Eq. 25)
+    C = dl/dF = L0/EA I + q (I - e e^T) + L0 p/(T_A T_B) (H^2 e e^T - H_vec H_vec^T)
+                - s/(T_A T_B) (H_vec e^T + e H_vec^T),                               (Eq. 29)
 
-with ``t`` the unit tangent pointing towards B, and with dp/dsigma = 1 + T/EA
-
-    l = F L0/EA - gamma L0^2/(2 EA) e + integral_0^L0 (F - gamma sigma e)/T(sigma) d sigma.
-
-Write ``V = F.e``, ``H_vec = F - V e`` (H = |H_vec|), ``a0 = V``, ``a1 = V - gamma L0`` (the
-vertical components at B and A), ``T_B = |F|``, ``T_A = sqrt(H^2 + a1^2)``. The integral gives
-``H_vec (asinh(a0/H) - asinh(a1/H))/gamma + e (T_B - T_A)/gamma``; in a form finite at H = 0
-(a hanging vertical cable) and at gamma = 0 (a weightless cable):
-
-    sinh(asinh(a0/H) - asinh(a1/H)) = (a0 T_A - a1 T_B)/H^2 = gamma L0 p,
-        p = (a0 + a1)/(a0 T_A + a1 T_B)                       if a0 a1 > 0 (no low point),
-        p = (H^2 + T_A T_B - a0 a1)/((T_A + T_B) H^2)         otherwise (needs H > 0),
-    q = L0 p asinh(gamma L0 p)/(gamma L0 p),      s = L0 (a0 + a1)/(T_A + T_B) = (T_B - T_A)/gamma,
-
-    l = L0/EA (F - gamma L0/2 e) + q H_vec + s e.                                     (Eq. 25)
-
-Both forms of ``p`` are sums of same-signed terms where they are used (no cancellation). The
-flexibility is ``dl/dF = L0/EA I + integral (I - t t^T)/T d sigma``, in closed form
-
-    C = L0/EA I + q (I - e e^T) + L0 p/(T_A T_B) (H^2 e e^T - H_vec H_vec^T)
-        - s/(T_A T_B) (H_vec e^T + e H_vec^T),                                     (Eq. 29)
-
-symmetric and positive definite wherever the tension is positive along the whole cable.
-
-Signs. Here A is the anchor and B the platform attachment: ``l = -chord`` and F is minus the
-force the cable exerts on the platform. Moving the attachment by dx changes l by dx and the
-force on the platform by -dF = -C^-1 dx, so the stiffness the platform feels is ``K = C^-1``,
-positive definite for a taut cable. Seen from the other end (A <-> B, l -> -l,
-F -> gamma L0 e - F) C is unchanged: the cable has one 3x3 stiffness K, and its 6x6 two-end
-stiffness is [K -K; -K K].
-
-Paper Section IV uses the force F_p = gamma L0 e - F at its node I = A, so its flexibility
-dl/dF_p is -C (negative definite) and its tangent matrix [-K K; K -K] of Eq. 33 is the same
-[K -K; -K K] in this sign. Its Eq. 25a should read l_x = -F1 L0/EA - (F1/gamma)
-ln[(T_j + gamma L0 - F3)/(T_i - F3)], and T_i - F3 loses all digits (0/0 in Eq. 29) when node I
-is the upper end of a vertical cable: the forms above do not. The paper's misprints (checked in
-``test/test_catenary.py``): Eq. 24a lacks "= 0"; Eqs. 25a-b close the first log too early and
-print F0 for F3; Eq. 29b f23 has the wrong sign (it is (F2/gamma)(1/T_j - 1/T_i), like f13);
-Eq. 29d has F6/T_i for F6/T_j; Eq. 30b defines T_j, not T_i. The logs of Eqs. 29a/29c are right
-(natural log) once Eq. 25a is corrected, and Eq. 33 is right in the sign of Eq. 29.
-
-Models (both massless: the platform end is the only node, like ``spring``):
-
-* ``catenary``: the paper's modified analytical method, L0 = chord length and F = T_i along the
-  chord (no Newton iteration); K = C^-1 with the corrected C. As gamma -> 0 it tends to
-  EA/L u u^T + T/L EA/(EA + T) (I - u u^T): ``spring`` with the transverse term scaled by
-  EA/(EA + T), because the unstrained length is taken as the chord.
-* ``catenary_exact``: L0 and F solved by Newton so that the end position closes on the chord
-  exactly and |F| = T_i; K = C^-1 at the solution, end force along the end tangent. As
-  gamma -> 0 it tends to (EA + T)/L u u^T + T/L (I - u u^T).
-
-In the plane. The load gamma e and a force F in the vertical plane of the chord (spanned by
-l and e) keep the whole cable in that plane; the solutions do so by symmetry. With h the unit
-horizontal direction of l (any horizontal unit for a vertical chord), F = f_h h + f_v e and
-l = l_h h + l_v e, Eq. 25 is two equations, l_h = (L0/EA + q) f_h and
-l_v = L0/EA (f_v - gamma L0/2) + s, and C is block diagonal in (h, e; n):
-c_hh = L0/EA + q - k f_h^2, c_he = -m f_h, c_ee = L0/EA + k f_h^2, c_nn = L0/EA + q with
-k = L0 p/(T_A T_B), m = s/(T_A T_B). The solve and the stiffness work there on (n,) arrays,
-with 2x2 and 3x3 systems eliminated in closed form; :func:`end_position` and
-:func:`flexibility` are the same formulas for any force in 3D.
-
-Irvine's sag parameter per cable is :func:`sag_parameter`.
+with ``p``, ``q``, ``s`` in forms finite at H = 0 and gamma = 0; the stiffness the platform
+feels is ``K = C^-1`` (N/m). ``catenary`` is the paper's method (L0 = chord, F along the chord,
+the corrected C); ``catenary_exact`` solves L0 and F by Newton so the cable closes on the chord.
+The solves work in each cable's vertical plane. The derivation, the signs against the paper's
+Section IV and its misprints: doc/theory.md, section "The elastic catenary".
 """
 from __future__ import annotations
 
