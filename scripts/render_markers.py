@@ -5,7 +5,7 @@ usage: python scripts/render_markers.py [CONFIG.yaml] [OUT.png] [--method M] [--
 The node's markers without the node: the equilibrium at the config's initial pose, a step
 force ``--force-n`` (default 0 0 -200 N) integrated for ``--time-s`` s (Newmark, as the node
 does), the MarkerArray with that displacement exaggerated by ``--scale``, written with the
-project's RecordingWriter, read back and plotted. The README's doc/markers_heavy_sag.png:
+project's RecordingWriter, read back and plotted. The docs' doc/markers_heavy_sag.png:
 ``python scripts/render_markers.py config/heavy_sag_6dof.yaml doc/markers_heavy_sag.png``.
 """
 from __future__ import annotations

@@ -422,8 +422,7 @@ def test_node_help(ros_env, flag):
     run = node(ros_env, flag)   # no params file: it must not try to build a robot
     assert run.returncode == 0 and run.stderr == ''
     assert run.stdout.startswith('usage: dynamics_node')
-    for words in ('--params-file', 'paper_cdpr.yaml', "'/**:'", 'README.md, section '
-                  'Configuration'):
+    for words in ('--params-file', 'paper_cdpr.yaml', "'/**:'", 'doc/configuration.md'):
         assert words in run.stdout, words
 
 

@@ -49,6 +49,7 @@ def text_of(site: Path, page: str) -> str:
     return html.unescape(re.sub(r'<[^>]+>', '', page_html))
 
 
+@pytest.mark.slow
 def test_every_page_is_built_and_linked(site):
     pages = source_pages()
     assert built_pages(site) == pages
@@ -58,6 +59,7 @@ def test_every_page_is_built_and_linked(site):
         assert f'href="{page}.html' in index, page
 
 
+@pytest.mark.slow
 def test_every_parameter_is_in_the_generated_tables(site):
     text = (site / 'configuration.html').read_text()
     for param in PARAMETERS + NODE_PARAMETERS:
@@ -78,6 +80,7 @@ def test_parameter_table_rows():
             assert cells[2] == ', '.join(param.choices)
 
 
+@pytest.mark.slow
 def test_benchmark_tables_show_the_committed_json(site):
     files = sorted((DOC / 'benchmarks').glob('*.json'))
     assert files, 'no cdpr_bench --json output committed in doc/benchmarks'
@@ -92,6 +95,7 @@ def test_benchmark_tables_show_the_committed_json(site):
         assert f"{warm['p50_s'] * 1e3:.3g} / {warm['p99_s'] * 1e3:.3g}" in text
 
 
+@pytest.mark.slow
 def test_tradeoff_table_shows_the_committed_csv(site):
     text = text_of(site, 'tools/cdpr_tradeoff')
     csv_text = (DOC / 'benchmarks' / 'tradeoff_paper_cdpr.csv').read_text().splitlines()
@@ -102,6 +106,7 @@ def test_tradeoff_table_shows_the_committed_csv(site):
                          text), line
 
 
+@pytest.mark.slow
 def test_api_reference_documents_every_module(site):
     text = (site / 'api.html').read_text()
     for folder in ('cdpr_dynamics', 'msg_adapters'):
@@ -113,6 +118,7 @@ def test_api_reference_documents_every_module(site):
             assert f'id="module-{name}"' in text, name
 
 
+@pytest.mark.slow
 def test_validation_lists_every_test_module(site):
     text = text_of(site, 'validation')
     for path in sorted((ROOT / 'test').glob('test_*.py')):

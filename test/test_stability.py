@@ -1,5 +1,5 @@
 """Stability where methods fail: each case is detected, flagged or refused, never a NaN or a
-traceback (issue 5 item 4). The README's stability table (method, condition, what happens,
+traceback. The stability table of doc/failures.md (method, condition, what happens,
 what the package does) lists the same cases in the same order:
 
 catenary models at and near a hanging vertical cable, tension -> 0, no catenary solution;

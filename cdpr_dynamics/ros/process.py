@@ -197,9 +197,10 @@ Live vibration prediction of a cable-driven parallel robot: ROS 2 node 'cdpr_dyn
 The params file describes the robot (anchors, mass, cables, tension limits: no defaults) and
 may set the numerical settings (model, damping, frf, newmark, node: documented defaults). Key
 its section '/**:' (any namespace) or 'cdpr_dynamics:'. A name not in the parameter table is
-an error. The table (names, units, defaults, ranges) is in README.md, section Configuration,
-and in cdpr_dynamics/analysis/config.py (PARAMETERS); on a running node: ros2 param describe
-/cdpr_dynamics NAME. Ctrl-C or SIGTERM stops it; a bad configuration exits 1 with one line.
+an error. The table (names, units, defaults, ranges) is in doc/configuration.md (the docs
+site's Configuration page) and in cdpr_dynamics/analysis/config.py (PARAMETERS); on a running
+node: ros2 param describe /cdpr_dynamics NAME. Ctrl-C or SIGTERM stops it; a bad
+configuration exits 1 with one line.
 """
 
 

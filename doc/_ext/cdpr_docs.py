@@ -238,7 +238,7 @@ def rst_is_clean(text: str) -> bool:
         Parser().parse(_ROLE.sub('`', text), document)
         document.transformer.add_transform(Substitutions)
         document.transformer.apply_transforms()
-    except SystemMessage:
+    except (SystemMessage, AttributeError):     # e.g. a Sphinx directive that needs its env
         return False
     return not stream.getvalue() and not any(document.findall(
         lambda node: node.tagname in ('system_message', 'problematic')))
