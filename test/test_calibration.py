@@ -120,6 +120,9 @@ def test_pairing_follows_the_direction_where_the_table_has_it():
     assert pair_modes(model_hz, shapes, measured, directions).tolist() == [1, 0]
     directions[:, :2] = [[1.0, 0.02], [0.01, 1.0]]
     assert pair_modes(model_hz, shapes, measured, directions).tolist() == [0, 1]
+    # a measured mode far from every model mode (a cable mode) stays unpaired
+    far = pair_modes(model_hz, shapes, [10.05, 40.0], np.full((2, 6), np.nan))
+    assert far.tolist() == [0, -1]
 
 
 def test_modes_table_round_trip_and_errors(tmp_path):

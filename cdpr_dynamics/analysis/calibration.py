@@ -50,6 +50,9 @@ PENALTY = 1e3
 ZERO_LENGTH_SCALE_M = 0.1
 #: Parameters the statics (tensions, sag) do not depend on: a change of them reuses it.
 STATICS_FREE = ('robot.inertia_kg_m2',)
+#: Largest |ln(f_model / f_measured)| of a pair (a factor 1.28): a measured mode farther from
+#: every model mode is left out of the fit and counted in the report.
+MAX_PAIR_LOG = 0.25
 #: Eigenvalues closer than this (relative) are one repeated eigenvalue in the sensitivities.
 REPEATED = 1e-6
 _TARGET = re.compile(r'([A-Za-z_][A-Za-z0-9_.]*)(?:\[(\d+)\])?')
@@ -242,7 +245,8 @@ def pair_modes(model_hz, model_shapes, measured_hz, directions) -> np.ndarray:
 
     Cost of a pair: |ln(f_model / f_measured)| plus, where the measured direction is known
     (``directions`` (m, 6), NaN where not), 1 - MAC of the direction and the model mode's
-    platform DOFs; the assignment of least total cost (linear_sum_assignment)."""
+    platform DOFs; the assignment of least total cost (linear_sum_assignment). A pair farther
+    apart than :data:`MAX_PAIR_LOG` is none (a cable mode in the table, say)."""
     model_hz = np.asarray(model_hz, dtype=float)
     measured_hz = np.asarray(measured_hz, dtype=float)
     ndof = model_shapes.shape[0]
@@ -254,7 +258,8 @@ def pair_modes(model_hz, model_shapes, measured_hz, directions) -> np.ndarray:
                         for j in range(model_hz.size)]
     rows, cols = linear_sum_assignment(cost)
     out = np.full(measured_hz.size, -1)
-    out[rows] = cols
+    near = np.abs(np.log(np.maximum(model_hz[cols], 1e-12) / measured_hz[rows])) <= MAX_PAIR_LOG
+    out[rows[near]] = cols[near]
     return out
 
 
@@ -626,6 +631,8 @@ def fit(flat: dict, table: ModesTable, names, holdout: float = 0.0, seed: int = 
                'after': _rms_pct(after.predicted_hz[mask], measured[mask]),
                'modes': int(mask.sum())}
         for part, mask in (('fit', ~is_held), ('holdout', is_held)) if mask.any()}
+    report['unpaired_modes'] = {'before': int(np.isnan(before.predicted_hz).sum()),
+                                'after': int(np.isnan(after.predicted_hz).sum())}
     report['modes'] = [{'pose_id': int(p), 'measured_hz': float(m), 'before_hz': _num(b),
                         'after_hz': _num(a), 'holdout': bool(h)}
                        for p, m, b, a, h in zip(pose_of_row, measured, before.predicted_hz,

@@ -53,6 +53,7 @@ class Options:
     max_modes: int = 12
     max_window_s: float = 30.0
     min_snr: float = 8.0
+    max_damping_rel_std: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -225,10 +226,10 @@ def _basis(t: np.ndarray, poles: np.ndarray) -> np.ndarray:
     return np.concatenate([e * np.cos(wt), e * np.sin(wt)], axis=1)
 
 
-def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 3):
+def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 20):
     """Least-squares poles of y(t) = sum_r Re(a_r e^{s_r t}) + offset (variable projection:
     the amplitudes a_r, complex per channel, solved linearly for each trial pole set), by
-    at most ``steps`` Gauss-Newton steps from the ERA poles.
+    at most ``steps`` Levenberg-Marquardt steps from the ERA poles.
 
     Returns (poles, covariance of (sigma_1..m, omega_1..m), residues (m, c) complex,
     per pole the ratio of its signal's RMS to the residual's)."""
@@ -258,13 +259,20 @@ def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 3):
     x = np.concatenate([np.real(poles), np.imag(poles)])
     r, a, coef = solve(x)
     jac = jacobian(x, r)
-    for _ in range(steps):
-        dx = np.linalg.lstsq(jac, -r, rcond=None)[0]
+    mu = 1e-3
+    for _ in range(steps):          # Levenberg-Marquardt
+        normal = jac.T @ jac
+        dx = np.linalg.solve(normal + mu * np.diag(np.diag(normal)), -jac.T @ r)
         r_new, a_new, coef_new = solve(x + dx)
-        if not r_new @ r_new < r @ r:
-            break
-        x, r, a, coef = x + dx, r_new, a_new, coef_new
-        jac = jacobian(x, r)
+        if r_new @ r_new < r @ r:
+            done = r @ r - r_new @ r_new < 1e-10 * (r @ r)
+            x, r, a, coef = x + dx, r_new, a_new, coef_new
+            jac = jacobian(x, r)
+            mu = max(mu / 3.0, 1e-9)
+            if done:
+                break
+        else:
+            mu *= 4.0
     dof = max(r.size - 2 * m - (2 * m + 1) * c, 1)
     s2 = float(r @ r) / dof
     cov = np.linalg.pinv(jac.T @ jac) * s2
@@ -331,7 +339,8 @@ def identify_decay(t: np.ndarray, y: np.ndarray, kind: str, options: Options,
         if not (pole.imag > 0 and pole.real < 0 and snr[r] >= options.min_snr):
             continue
         f, sf, z, sz = _frequency_damping(pole, cov[r, r], cov[m + r, m + r], cov[r, m + r])
-        if not (options.f_min_hz <= f <= f_max_hz and z < options.max_damping_ratio):
+        if not (options.f_min_hz <= f <= f_max_hz and z < options.max_damping_ratio
+                and sz <= options.max_damping_rel_std * z):
             continue
         full = np.zeros(6, dtype=complex)
         full[used] = residues[r]

@@ -196,6 +196,9 @@ def fit_main(args) -> int:
     for part, errors in report['rms_error_pct'].items():
         print(f'rms frequency error ({part}, {errors["modes"]} modes): {errors["before"]:.3g} % '
               f'-> {errors["after"]:.3g} %')
+    if report['unpaired_modes']['after']:
+        print(f'{report["unpaired_modes"]["after"]} measured modes have no model mode within '
+              'a factor 1.28 and are left out')
     for skipped in report['skipped_poses']:
         print(f'pose {skipped["pose_id"]} skipped: {skipped["reason"]}')
     print(f'{PROG}: fitted in {report["timings_s"]["fit"]:.2f} s -> {args.output}')
