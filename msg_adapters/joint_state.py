@@ -1,7 +1,9 @@
 """sensor_msgs/JointState <-> cable lengths (n,) m and tensions (n,) N.
 
 One joint per cable, named ``cable_0`` ... ``cable_{n-1}`` in the order of ``robot.anchors``:
-position = cable length (m, chord from attachment to anchor), effort = tension (N).
+position = cable length (m, chord from attachment to anchor), effort = tension (N); for
+``cable_length_offsets`` position = unstretched minus straight length (m), velocity = stretch
+rate (m/s), effort = predicted cable force (N).
 """
 from __future__ import annotations
 
@@ -32,3 +34,12 @@ def read_tensions(msg: JointState) -> tuple[np.ndarray, np.ndarray]:
     """(lengths m, tensions N) of a cable_tensions message, in cable order."""
     order = np.argsort([int(name.rsplit('_', 1)[-1]) for name in msg.name])
     return np.asarray(msg.position)[order], np.asarray(msg.effort)[order]
+
+
+def length_offsets_message(offset_m, stretch_rate_m_s, force_n, stamp=None,
+                           frame_id: str = '') -> JointState:
+    """``cable_length_offsets``: position = offset (m), velocity = stretch rate (m/s),
+    effort = cable force (N), one joint per cable."""
+    msg = tensions_message(offset_m, force_n, stamp, frame_id)
+    msg.velocity = np.asarray(stretch_rate_m_s, dtype=float).ravel().tolist()
+    return msg

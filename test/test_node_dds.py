@@ -974,3 +974,71 @@ def test_input_loop_serves_its_subscriptions_in_order_and_stops(ros_env):
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-3000:]
     assert 'stopped after' in result.stdout and 'stop() ended the loop' in result.stdout
+
+
+def test_controller_topics_and_slack(ros):
+    """vibration_modes, input_shaper, notch_filter and cable_length_offsets against the library
+    (modes_job, the shapers, length_offsets), and the slack diagnostics under the paper's
+    1500 N: the node predicts as a slack-aware mirror does."""
+    from std_msgs.msg import Float64MultiArray
+
+    from cdpr_dynamics.analysis.controller import length_offsets, mode_labels
+    from cdpr_dynamics.dynamics import shapers
+    from cdpr_dynamics.ros.worker import modes_job
+    from msg_adapters.arrays import read_shaper, read_table
+
+    overrides = {'model.method': 'spring', 'damping.modal_ratio': 0.02, 'node.shaper': 'zvd',
+                 'node.shaper_modes': 2}
+    node = Harness(PAPER, ros['log_dir'], 'controller', overrides)
+    try:
+        node.settings = node.settings.replace(method='spring', damping_modal_ratio=0.02)
+        node.mirror = LivePredictor(node.settings)
+        got = {}
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+        def keep(name):
+            def store(msg):
+                with node.cond:
+                    got.setdefault(name, []).append(msg)
+                    node.cond.notify_all()
+            return store
+        for name in ('vibration_modes', 'input_shaper', 'notch_filter'):
+            node.node.create_subscription(Float64MultiArray, name, keep(name), latched)
+        node.node.create_subscription(JointState, 'cable_length_offsets',
+                                      keep('cable_length_offsets'), latched)
+        assert node.wait(lambda: len(got) == 4), sorted(got)
+        eq = node.mirror.eq
+        found = modes_job(node.settings, eq, 'spring', 1, 1000, {
+            'point_m': (0.0, 0.0, 0.0), 'shaper': 'zvd', 'shaper_modes': 2,
+            'sample_rate_hz': 1000.0})
+        rows, labels, keys = read_table(got['vibration_modes'][-1])
+        assert labels == mode_labels(3) and keys['pose_stamp_ns'] == 0
+        np.testing.assert_allclose(rows, found['mode_table'], rtol=1e-9)
+        times, amplitudes = read_shaper(got['input_shaper'][-1])
+        assert amplitudes.sum() == pytest.approx(1.0)
+        np.testing.assert_allclose(np.column_stack([times, amplitudes]).ravel(),
+                                   found['shaper_pairs'], rtol=1e-12)
+        notches, notch_labels, notch_keys = read_table(got['notch_filter'][-1])
+        assert notch_labels == ('b0', 'b1', 'b2', 'a0', 'a1', 'a2') and notches.shape == (2, 6)
+        assert notch_keys['sample_rate_hz'] == 1000.0
+        gain = np.abs(shapers.biquad_response(notches[0], [0.0, rows[0, 0]], 1000.0))
+        assert gain[0] == pytest.approx(1.0) and gain[1] < 1e-9
+        offsets = got['cable_length_offsets'][-1]
+        np.testing.assert_allclose(offsets.position, length_offsets(eq), rtol=1e-9)
+        np.testing.assert_allclose(offsets.effort, eq.tensions.tension_n, rtol=1e-9)
+        # a moved pose: new modes stamped with that pose
+        stamp_before = len(got['vibration_modes'])
+        node.pose([0.2, -0.1, 1.2])
+        pose_ns = node.t_ns
+        assert node.wait(lambda: any(read_table(m)[2]['pose_stamp_ns'] == pose_ns
+                                     for m in got['vibration_modes'][stamp_before:]))
+        # the paper's load slackens cables: the node steps the compression-free model
+        for k in range(120):
+            node.wrench([0.0, 0.0, 1500.0 * np.sin(2 * np.pi * 5.0 * (k + 1) * 0.002)],
+                        dt_s=0.002)
+        assert node.mirror.slack_time_s > 0
+        status = node.fresh_status('model')
+        assert float(status['values']['slack_time_s']) == pytest.approx(
+            node.mirror.slack_time_s, abs=1e-9)
+    finally:
+        assert node.close() == 0

@@ -142,10 +142,19 @@ def test_mode_table_and_shaping_of_the_paper_robot(robot):
     assert np.all(table[:, 0] <= settings.f_max_hz)
     assert_allclose(table[:, 1], damping.ratios(table[:, 0]))
     assert set(table[:, 3]) <= set(KIND_CODES.values())
-    # directions: unit vectors along the mode shapes' platform part (spring: all of it)
     assert_allclose(np.linalg.norm(table[:, 4:], axis=1), 1.0)
-    for row, shape in zip(table, found.shapes.T):
-        assert abs(row[4:] @ shape[:3]) == pytest.approx(np.linalg.norm(shape[:3]))
+    # directions (null vectors of the condensed dynamic stiffness) against the eigenvectors of
+    # the full model, away from the centre (distinct frequencies), fem with cable DOFs
+    off = settings.replace(method='fem', elements_per_cable=4,
+                           initial_position_m=np.array([0.3, -0.2, 1.1]))
+    off_system = build_system(off, equilibrium(off))
+    shapes = modes(off_system, off.f_max_hz, shapes=True)
+    rows = mode_table(off_system, shapes, damping_for(off, off_system), off.f_max_hz)
+    platform = [i for i, k in enumerate(shapes.kind[:len(rows)]) if k == 'platform']
+    assert len(platform) == 3
+    for i in platform:
+        shape = shapes.shapes[:3, i]
+        assert abs(rows[i, 4:] @ shape) == pytest.approx(np.linalg.norm(shape), rel=1e-6)
     shaping = controller_shaping(found, damping, 'zvd', 2, 1000.0)
     assert_allclose(shaping.frequency_hz, found.platform_hz[:2])
     expected = shapers.convolve(*(shapers.zvd(f, z) for f, z in

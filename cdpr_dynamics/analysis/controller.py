@@ -4,7 +4,9 @@ filters for the lowest platform modes, and the cables' length offsets (SPEC sect
 
 * :func:`mode_table`: a row per mode up to ``frf.f_max_hz``: :data:`MODE_COLUMNS`, then the
   mode's direction at a point of the platform (unit vector: the point's translation, plus the
-  rotation for a rigid platform), signed so that its largest component is positive.
+  rotation for a rigid platform), signed so that its largest component is positive; the
+  platform part of a mode is the null vector of the condensed dynamic stiffness at its
+  frequency (:func:`platform_shapes`).
 * :func:`controller_shaping`: the ``node.shaper`` shaper convolved over the
   ``node.shaper_modes`` lowest underdamped platform modes
   (:mod:`cdpr_dynamics.dynamics.shapers`) and a notch biquad per mode.
@@ -35,27 +37,54 @@ def mode_labels(platform_dofs: int) -> tuple[str, ...]:
 
 def mode_table(system: PlatformSystem, found: Modes, damping: Damping, f_max_hz: float,
                point_m=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """(k, 4 + nd): a row per mode of ``found`` in [0, ``f_max_hz``] (module docstring);
-    directions NaN where ``found`` has no shapes (``dsm``)."""
+    """(k, 4 + nd): a row per mode of ``found`` in [0, ``f_max_hz``] (module docstring)."""
     keep = found.frequency_hz <= f_max_hz
     freqs = found.frequency_hz[keep]
     nd = system.platform_dofs
-    ratios = damping.ratios(freqs)
-    kinds = [KIND_CODES[k] for k, kept in zip(found.kind, keep) if kept]
     table = np.full((freqs.size, 4 + nd), np.nan)
-    table[:, 0], table[:, 1] = freqs, ratios
-    table[:, 2], table[:, 3] = found.platform_fraction[keep], kinds
-    if found.shapes is not None and freqs.size:
-        q = found.shapes[:nd, keep].T                                         # (k, nd)
-        direction = point_displacement(q, system.geometry.rotation, point_m)  # (k, 3)
-        if nd == 6:
-            direction = np.concatenate([direction, q[:, 3:]], axis=1)
-        norm = np.linalg.norm(direction, axis=1, keepdims=True)
-        direction = np.divide(direction, norm, out=np.zeros_like(direction), where=norm > 0)
-        biggest = np.argmax(np.abs(direction), axis=1)
-        sign = np.sign(direction[np.arange(freqs.size), biggest])
-        table[:, 4:] = direction * np.where(sign == 0, 1.0, sign)[:, None]
+    table[:, 0], table[:, 1] = freqs, damping.ratios(freqs)
+    table[:, 2] = found.platform_fraction[keep]
+    table[:, 3] = [KIND_CODES[k] for k, kept in zip(found.kind, keep) if kept]
+    if not freqs.size:
+        return table
+    q = platform_shapes(system, freqs)                                       # (k, nd)
+    direction = point_displacement(q, system.geometry.rotation, point_m)     # (k, 3)
+    if nd == 6:
+        direction = np.concatenate([direction, q[:, 3:]], axis=1)
+    norm = np.linalg.norm(direction, axis=1, keepdims=True)
+    direction = np.divide(direction, norm, out=np.zeros_like(direction), where=norm > 0)
+    biggest = np.argmax(np.abs(direction), axis=1)
+    sign = np.sign(direction[np.arange(freqs.size), biggest])
+    table[:, 4:] = direction * np.where(sign == 0, 1.0, sign)[:, None]
     return table
+
+
+def platform_shapes(system: PlatformSystem, frequency_hz, rtol: float = 1e-6) -> np.ndarray:
+    """(k, nd) the platform part of each mode: the null vectors of the condensed undamped
+    dynamic stiffness Z(w) at its frequency (every model, ``dsm`` included, no eigenvectors
+    of the full model needed). A frequency repeated m times (within ``rtol``) gets the
+    min(m, nd) smallest right singular vectors, so repeated modes get orthogonal directions;
+    the rest of such a group (modes of symmetric cables beyond the platform's DOFs) and
+    frequencies where Z is not finite (a clamped cable's own mode) get zeros: no platform
+    motion."""
+    freqs = np.asarray(frequency_hz, dtype=float)
+    nd = system.platform_dofs
+    with np.errstate(all='ignore'):
+        z = system.dynamic_stiffness(2.0 * np.pi * freqs).real
+    finite = np.isfinite(z).all(axis=(1, 2))
+    vt = np.zeros((freqs.size, nd, nd))
+    if finite.any():
+        vt[finite] = np.linalg.svd(z[finite])[2]
+    shapes = np.zeros((freqs.size, nd))
+    i = 0
+    while i < freqs.size:
+        j = i + 1
+        while j < freqs.size and abs(freqs[j] - freqs[i]) <= rtol * max(freqs[i], 1e-12):
+            j += 1
+        m = min(j - i, nd)
+        shapes[i:i + m] = vt[i, ::-1][:m]
+        i = j
+    return shapes
 
 
 @dataclass(frozen=True, eq=False)

@@ -405,6 +405,15 @@ class LivePredictor:
         platform's motion, -u_i . G_i q' (the anchor-ward unit vector u_i)."""
         return self._stretch_map @ self.platform_state()[1]
 
+    def set_slack(self, slack: str) -> None:
+        """Switch ``node.slack`` (aware, linear); to linear while slack: the linear model takes
+        over the compression-free state."""
+        if slack not in SLACK_MODES:
+            raise ValueError(f'slack must be one of {", ".join(SLACK_MODES)}, not {slack!r}')
+        if slack == 'linear' and self._stepper is not None:
+            self._leave_slack()
+        self.slack = slack
+
     def _at_pose(self, system: PlatformSystem) -> None:
         """Per-pose data of the slack check and the closed form (after a rebuild)."""
         g = system.geometry.attachment_map()

@@ -41,9 +41,11 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
 from cdpr_dynamics.analysis.config import node_options, settings_from_params
+from cdpr_dynamics.analysis.controller import length_offsets, mode_labels
 from cdpr_dynamics.analysis.live import LivePredictor, PoseUpdate
 from cdpr_dynamics.analysis.pipeline import damping_for, damping_warnings
 from cdpr_dynamics.mechanics.robot import quaternion_to_matrix
@@ -54,8 +56,9 @@ from cdpr_dynamics.ros.parameters import IO_SUFFIX, NODE_NAME, changed, declare_
 from cdpr_dynamics.ros.rclpy_compat import make_set_parameters_atomic, take_next
 from cdpr_dynamics.ros.worker import BackgroundStatics, StaticsRequest, Worker, modes_job
 from msg_adapters import diagnostics as diag
+from msg_adapters.arrays import shaper_message, table_message
 from msg_adapters.displacement import displacement_message, fill_displacement
-from msg_adapters.joint_state import tensions_message
+from msg_adapters.joint_state import length_offsets_message, tensions_message
 from msg_adapters.markers import equilibrium_markers, update_arrow
 from msg_adapters.pose import fill_pose, pose_message
 from msg_adapters.inputs import NUMERIC_ERRORS, InputHandler, first_line
@@ -68,6 +71,9 @@ CHANGE_PERIOD_S = 0.1
 OUTPUT_DEPTH = 1000      # predictions kept for a reliable subscriber that lags: 1 s at 1 kHz
 #                          (a depth of 10 drops what a subscriber busy for 10 ms has not taken)
 MARKERS_PERIOD_S = 0.5    # markers of a new equilibrium at most this often (milliseconds each)
+CONTROLLER_PARAMETERS = ('node.shaper', 'node.shaper_modes', 'node.notch_sample_rate_hz',
+                         'node.output_point_m')
+NOTCH_LABELS = ('b0', 'b1', 'b2', 'a0', 'a1', 'a2')
 MODES_PERIOD_S = 0.5      # modes refreshed after rebuilds at most this often (a moving pose
 #                           rebuilds at 50 Hz and more; its modes change slowly)
 MODES_DUTY = 0.1          # and at most this share of a core: a refresh that took 0.5 s (the
@@ -103,7 +109,8 @@ class DynamicsNode(Node):
         self.frame_id = self.settings.robot.frame_id
         self._node_clock = self.get_clock()
         self.predictor = LivePredictor(self.settings, self.flat['node.pose_tolerance_m'],
-                                       self.flat['node.angle_tolerance_rad'])
+                                       self.flat['node.angle_tolerance_rad'],
+                                       self.flat['node.slack'])
         self.revision = 0                      # bumps whenever the model state changes
         self._rebuilds = 0
         self.predictor.max_steps_per_wrench = self.flat['node.max_steps_per_wrench']
@@ -115,6 +122,7 @@ class DynamicsNode(Node):
         self._held_pose = None
         self.timings = Timings()
         self._modal_warnings: list[str] = []
+        self._shaping_skipped: list[str] = []
         self._logged_warning_kinds = None
         self._lowest_hz = float('nan')
         self._platform_hz = np.zeros(0)     # classified platform modes up to frf.f_max_hz
@@ -124,6 +132,9 @@ class DynamicsNode(Node):
         self._modes_revision = -1
         self._modes_asked = -np.inf
         self._modes_period_s = MODES_PERIOD_S
+        self._rebuild_stamp_ns = 0          # the pose whose model is in use (0: the initial)
+        self._modes_stamp_ns = 0            # the pose whose model the modes job had
+        self._controller_outputs = None     # the start's, published once the publishers exist
         # node.rebuild: worker: the statics of moved poses in a process of their own
         self._background = (BackgroundStatics(self._wake)
                             if self.flat['node.rebuild'] == 'worker' else None)
@@ -149,6 +160,10 @@ class DynamicsNode(Node):
         self.tensions_pub = self.create_publisher(JointState, 'cable_tensions', latched)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.markers_pub = self.create_publisher(MarkerArray, 'cdpr_markers', latched)
+        self.modes_pub = self.create_publisher(Float64MultiArray, 'vibration_modes', latched)
+        self.shaper_pub = self.create_publisher(Float64MultiArray, 'input_shaper', latched)
+        self.notch_pub = self.create_publisher(Float64MultiArray, 'notch_filter', latched)
+        self.offsets_pub = self.create_publisher(JointState, 'cable_length_offsets', latched)
         self._markers_arrow = None
         self._markers = None
         self._markers_stale = False
@@ -166,6 +181,8 @@ class DynamicsNode(Node):
         self._diag_last = -np.inf
         self._diag_timer = self.create_timer(CHANGE_PERIOD_S, self.on_diagnostics_timer)
         self._publish_tensions(self.get_clock().now().to_msg())
+        if self._controller_outputs is not None:
+            self._publish_controller(self._controller_outputs)
         self._publish_markers(self.predictor.prediction().displacement_m
                               * self.flat['node.marker_scale'], self.predictor.settings,
                               self.predictor.eq)
@@ -212,6 +229,9 @@ class DynamicsNode(Node):
         self.predictor.angle_tolerance_rad = flat['node.angle_tolerance_rad']
         self.inputs.quaternion_tolerance = flat['node.quaternion_tolerance']
         self.inputs.policy = StampPolicy.from_options(flat)
+        self.predictor.set_slack(flat['node.slack'])
+        if any(p.name in CONTROLLER_PARAMETERS for p in params):
+            self._modal_stale = True         # vibration_modes, shapers: the next refresh
         if analysis_changed:
             self._rebuilt(update)
             self._publish_tensions(self._pose_stamp or self.get_clock().now().to_msg())
@@ -239,7 +259,7 @@ class DynamicsNode(Node):
         if self.inputs.notice:
             self.diag_dirty = self.pose_health.warn('clock', self.inputs.notice)
         if update.rebuilt:
-            self._rebuilt(update)
+            self._rebuilt(update, self.inputs.last_pose_ns)
         if not background or not self._queue_pose(*self._held_pose):
             self._publish_tensions(self._pose_stamp)   # else with its model (_take_statics)
 
@@ -282,7 +302,7 @@ class DynamicsNode(Node):
                 self._reject(self.pose_health, 'internal',
                              f'{type(exc).__name__}: {clip(exc)}')
             else:
-                self._rebuilt(update)
+                self._rebuilt(update, stamp_to_ns(request.stamp))
                 self.timings.swap_s.append(time.monotonic() - request.asked_s)
                 self._publish_tensions(request.stamp)
         self._background.submit_pending(self._next_statics)
@@ -340,7 +360,10 @@ class DynamicsNode(Node):
         if health.reject(kind, reason):
             self.diag_dirty = True
 
-    def _rebuilt(self, update) -> None:
+    def _rebuilt(self, update, stamp_ns: int | None = None) -> None:
+        """After a rebuild (at the pose stamped ``stamp_ns``; None: no pose, a parameter)."""
+        if stamp_ns is not None:
+            self._rebuild_stamp_ns = stamp_ns
         self.revision += 1
         self._rebuilds += 1
         self.frf.cache.clear()
@@ -368,9 +391,26 @@ class DynamicsNode(Node):
             logger.info(f'model: no warnings any more ({", ".join(sorted(before))} cleared)')
 
     def _publish_tensions(self, stamp) -> None:
-        eq = self.predictor.eq
+        """``cable_tensions`` and ``cable_length_offsets`` of the model in use."""
+        predictor = self.predictor
+        eq = predictor.eq
         self.tensions_pub.publish(tensions_message(eq.geometry.length_m, eq.tensions.tension_n,
                                                    stamp, self.frame_id))
+        self.offsets_pub.publish(length_offsets_message(
+            length_offsets(eq), predictor.stretch_rate_m_s(), predictor.cable_force_n(), stamp,
+            self.frame_id))
+
+    def _publish_controller(self, found: dict) -> None:
+        """``vibration_modes`` and, with a shaper, ``input_shaper`` and ``notch_filter`` of a
+        modes job's answer, stamped (in their layout) with the pose its model belongs to."""
+        stamp_ns = found['stamp_ns']
+        labels = mode_labels(found['platform_dofs'])
+        self.modes_pub.publish(table_message(found['mode_table'], labels, stamp_ns))
+        if 'shaper_pairs' in found:
+            self.shaper_pub.publish(shaper_message(found['shaper_pairs'], stamp_ns))
+            self.notch_pub.publish(table_message(
+                found['notches'], NOTCH_LABELS, stamp_ns, 'notch',
+                sample_rate_hz=self.flat['node.notch_sample_rate_hz']))
 
     def _publish_markers(self, arrow, settings, eq, rebuilt: bool = True) -> None:
         """``cdpr_markers`` of the equilibrium ``eq`` (rebuilt) or only its arrow moved to
@@ -395,13 +435,18 @@ class DynamicsNode(Node):
 
     def _modes_args(self) -> tuple:
         assembly = self.predictor.system.assembly
+        controller = {'point_m': tuple(self.flat['node.output_point_m']),
+                      'shaper': self.flat['node.shaper'],
+                      'shaper_modes': self.flat['node.shaper_modes'],
+                      'sample_rate_hz': self.flat['node.notch_sample_rate_hz']}
         return (self.predictor.settings, self.predictor.eq, assembly.method,
-                assembly.elements_per_cable, self.predictor.max_steps_per_wrench)
+                assembly.elements_per_cable, self.predictor.max_steps_per_wrench, controller)
 
     def _update_modal(self) -> None:
         """Classified modes (the lowest platform mode), damping and time-step warnings of the
         current model, computed here: at start, before the node serves anything."""
         self._modal_stale = False
+        self._modes_stamp_ns = self._rebuild_stamp_ns
         try:
             found = modes_job(*self._modes_args())
             self._pace_modes(found['seconds'])
@@ -415,6 +460,7 @@ class DynamicsNode(Node):
         if self._modes_future is not None:
             return
         self._modal_stale = False
+        self._modes_stamp_ns = self._rebuild_stamp_ns
         self._modes_revision = self.revision
         self._modes_asked = time.monotonic()
         self._modes_future = self._worker.submit('modes', *self._modes_args())
@@ -449,6 +495,13 @@ class DynamicsNode(Node):
         self._platform_hz = found['platform_hz']
         self._step_warnings = found['step_warnings']
         self._set_modal(found['frequency_hz'])
+        self._shaping_skipped = list(found.get('skipped', ()))
+        if 'mode_table' in found:
+            found = dict(found, stamp_ns=self._modes_stamp_ns)
+            if hasattr(self, 'modes_pub'):
+                self._publish_controller(found)
+            else:                                    # at start, before the publishers
+                self._controller_outputs = found
 
     def _set_modal(self, freqs) -> None:
         freqs = np.asarray(freqs)
@@ -522,10 +575,30 @@ class DynamicsNode(Node):
         if self._background is not None:
             extra['poses_superseded'] = self._background.superseded
         extra.update(self.timings.model_values())
+        extra.update(self._slack_values())
         modal = {'lowest_hz': self._lowest_hz, 'platform_hz': self._platform_hz,
-                 'warnings': self._modal_warnings}
+                 'warnings': self._slack_warnings() + self._modal_warnings
+                 + self._shaping_skipped}
         return [diagnostics.model_status(name, hw, self.predictor, modal, extra),
                 diagnostics.input_status(name, 'pose input', self.pose_health, {}, hw),
                 diagnostics.input_status(name, 'wrench input', self.wrench_health,
                                          self.timings.wrench_values(), hw),
                 self.frf.status(name, hw)]
+
+    def _slack_values(self) -> dict:
+        predictor = self.predictor
+        return {'slack': predictor.slack,
+                'slack_cables': ', '.join(map(str, predictor.slack_cables)) or 'none',
+                'slack_time_s': round(predictor.slack_time_s, 6)}
+
+    def _slack_warnings(self) -> list[str]:
+        """The slack cables at the last wrench, as a warning (empty when all are taut)."""
+        predictor = self.predictor
+        if not predictor.slack_cables:
+            return []
+        cables = ', '.join(map(str, predictor.slack_cables))
+        if predictor.slack == 'aware':
+            return [f'slack: cable(s) {cables} slack, the compression-free model predicts '
+                    f'({predictor.slack_time_s:.3f} s slack in total)']
+        return [f'slack: cable(s) {cables} would be slack, the linear prediction does not hold '
+                f'(node.slack: linear; {predictor.slack_time_s:.3f} s in total)']

@@ -49,20 +49,40 @@ def frf_job(settings, eq, method: str, elements: int):
     return frf_arrays(settings, system)
 
 
-def modes_job(settings, eq, method: str, elements: int, max_steps: int) -> dict:
+def modes_job(settings, eq, method: str, elements: int, max_steps: int,
+              controller: dict | None = None) -> dict:
     """What the node reports of its model's modes: every natural frequency up to
     ``frf.f_max_hz`` (at least 12), the platform ones, the time-step warnings, and the
-    seconds it took (the node spaces its refreshes by it)."""
-    from cdpr_dynamics.analysis.pipeline import build_system, system_modes
+    seconds it took (the node spaces its refreshes by it). ``controller`` (``point_m``,
+    ``shaper``, ``shaper_modes``, ``sample_rate_hz``) adds the ``vibration_modes`` table
+    (``mode_table``) and, unless the shaper is ``none``, the
+    shaper's impulses (``shaper_pairs``), the ``notches`` and why modes were ``skipped``
+    (:mod:`cdpr_dynamics.analysis.controller`)."""
+    from cdpr_dynamics.analysis.pipeline import build_system, damping_for, system_modes
     from cdpr_dynamics.analysis.live import time_step_warnings
     start = time.perf_counter()
     system = build_system(settings, eq, method, elements)
     found = system_modes(settings, system)
     positive = found.frequency_hz[found.frequency_hz > 0]
     lowest = float(positive[0]) if positive.size else float('nan')
-    return {'frequency_hz': found.frequency_hz, 'platform_hz': found.platform_hz,
-            'step_warnings': time_step_warnings(settings, system, lowest, max_steps),
-            'seconds': time.perf_counter() - start}
+    out = {'frequency_hz': found.frequency_hz, 'platform_hz': found.platform_hz,
+           'step_warnings': time_step_warnings(settings, system, lowest, max_steps)}
+    if controller is not None:
+        from cdpr_dynamics.analysis.controller import controller_shaping, mode_table
+        damping = damping_for(settings, system)
+        out['mode_table'] = mode_table(system, found, damping, settings.f_max_hz,
+                                       controller['point_m'])
+        out['platform_dofs'] = system.platform_dofs
+        if controller['shaper'] != 'none':
+            shaping = controller_shaping(found, damping, controller['shaper'],
+                                         controller['shaper_modes'],
+                                         controller['sample_rate_hz'])
+            out['shaper_pairs'] = (() if shaping.shaper is None
+                                   else shaping.shaper.pairs())
+            out['notches'] = shaping.notches
+            out['skipped'] = shaping.skipped
+    out['seconds'] = time.perf_counter() - start
+    return out
 
 
 _STATICS = {}    # in the child: (settings token, LivePredictor) of the statics job
