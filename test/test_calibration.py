@@ -21,7 +21,8 @@ from cdpr_dynamics.analysis.modes_table import (ModesTable, TableError, read_mod
 from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilibrium
 from cdpr_dynamics.cli.calibrate import main
 from cdpr_dynamics.dynamics.system import Damping, platform_frequencies
-from cdpr_dynamics.mechanics.robot import quaternion_to_matrix, rotation_vector_quaternion
+from cdpr_dynamics.mechanics.robot import (matrix_to_quaternion, quaternion_to_matrix,
+                                           rotation_vector_quaternion)
 
 ROOT = Path(__file__).resolve().parents[1]
 RIGID = ROOT / 'test' / 'data' / 'rigid_cdpr.yaml'
@@ -42,10 +43,13 @@ def campaign(flat, poses, modes, noise=0.01, seed=1, spread_m=0.4, tilt_rad=0.0,
         position = centre + rng.uniform(-spread_m, spread_m, 3)
         quaternion = rotation_vector_quaternion(rng.uniform(-tilt_rad, tilt_rad, 3))
         try:
-            system = build_system(settings, equilibrium(settings, position,
-                                                        quaternion_to_matrix(quaternion)))
+            eq = equilibrium(settings, position, quaternion_to_matrix(quaternion))
+            system = build_system(settings, eq)
         except AnalysisError:
             continue
+        # an underactuated robot hangs where it balances, not at the pose asked for
+        position = eq.geometry.position_m
+        quaternion = matrix_to_quaternion(eq.geometry.rotation)
         freqs = platform_frequencies(system)[:modes]
         shapes = scipy.linalg.eigh(system.static_stiffness(), system.platform_mass)[1]
         for j, f in enumerate(freqs):
@@ -203,6 +207,32 @@ def test_sagging_robot_with_a_sag_aware_model_recovered():
     for i, true in enumerate((0.18, 0.14, 0.12)):
         assert abs(fitted(report, f'robot.inertia_kg_m2[{i}]')['fitted'] / true - 1) < 0.10
     assert report['rms_error_pct']['holdout']['after'] < 1.5
+
+
+def test_underactuated_suspended_robot_recovered():
+    """Three cables from a ring above to a ring on the platform (a trifilar, 6 DOF held by
+    gravity): the table's poses are its equilibria; each trial parameter set hangs the
+    platform again (the direct geometrico-static problem at the pose's cable lengths)."""
+    def ring(radius_m, z_m):
+        angle = np.deg2rad(90.0 + 120.0 * np.arange(3))
+        return np.c_[radius_m * np.cos(angle), radius_m * np.sin(angle), np.full(3, z_m)]
+    config = dict(read_params_file(PAPER), **{
+        'robot.anchors': ring(1.5, 2.5).ravel().tolist(),
+        'robot.attachments': ring(0.15, 0.0).ravel().tolist(),
+        'robot.initial_position': [0.0, 0.0, 1.0], 'robot.mass_kg': 8.0,
+        'robot.inertia_kg_m2': [0.1, 0.1, 0.15, 0.0, 0.0, 0.0], 'tension.min_n': 1.0,
+        'model.method': 'spring'})
+    truth = dict(config, **{'cable.youngs_modulus_pa': 2.01e10 * 0.8,
+                            'robot.inertia_kg_m2': [0.12, 0.11, 0.18, 0.0, 0.0, 0.0]})
+    table = campaign(truth, 16, 6, spread_m=0.3)
+    report = fit(config, table, ['cable.youngs_modulus_pa', 'robot.inertia_kg_m2[0]',
+                                 'robot.inertia_kg_m2[1]', 'robot.inertia_kg_m2[2]'],
+                 holdout=0.25).report
+    assert abs(fitted(report, 'cable.youngs_modulus_pa')['fitted'] / 1.608e10 - 1) < 0.05
+    for i, true in enumerate((0.12, 0.11, 0.18)):
+        assert abs(fitted(report, f'robot.inertia_kg_m2[{i}]')['fitted'] / true - 1) < 0.10
+    assert report['rms_error_pct']['holdout']['after'] < 1.5
+    assert report['skipped_poses'] == []
 
 
 def test_an_unidentifiable_combination_is_named_and_left_unfitted():
