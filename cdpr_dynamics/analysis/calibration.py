@@ -353,14 +353,13 @@ class FitProblem:
     def residuals(self, x) -> np.ndarray:
         return self.state(x).residuals
 
-    def jacobian(self, x, columns=None) -> np.ndarray:
+    def jacobian(self, x) -> np.ndarray:
         """d(residuals)/dx (x: parameters over their scale) by eigenvalue sensitivities."""
         state = self.state(x)
-        columns = range(len(self.targets)) if columns is None else columns
         jac = np.zeros((self.n_residuals, len(self.targets)))
         if state.settings is None:
             return jac
-        for k in columns:
+        for k in range(len(self.targets)):
             bound = _bounds(self.targets[k])
             step = STEP * max(abs(x[k]), 1.0)
             if (x[k] + step) * self.scale[k] > bound[1]:
