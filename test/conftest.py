@@ -48,6 +48,18 @@ def ros_env(tmp_path) -> dict:
     return env
 
 
+#: fixtures that start ROS processes or DDS participants: a test using one is marked ``ros``
+ROS_FIXTURES = ('ros_env', 'procs', 'processes')
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark ``ros`` every test that uses a fixture of :data:`ROS_FIXTURES` (the stress lane
+    runs them; ``scripts/test.sh --quick`` leaves them out)."""
+    for item in items:
+        if any(name in getattr(item, 'fixturenames', ()) for name in ROS_FIXTURES):
+            item.add_marker(pytest.mark.ros)
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     outcome = yield

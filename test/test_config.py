@@ -535,7 +535,6 @@ def entered(stderr_lines: list) -> bool:
     return 'cdpr_dynamics.cli' in names and names[-1] != 'cdpr_dynamics.cli'
 
 
-@pytest.mark.ros
 @pytest.mark.parametrize('tool,args', [
     ('cdpr_analyze', ['--method', 'fem', '--elements', '48', '--duration', '60']),
     ('cdpr_tradeoff', ['--csv', 'out.csv']),

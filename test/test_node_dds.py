@@ -55,6 +55,8 @@ from msg_adapters.validation import s_to_stamp, stamp_to_ns
 from msg_adapters.wrench import wrench_message
 from conftest import installed, wait_until
 
+pytestmark = pytest.mark.ros   # nodes, DDS, worker processes, signals
+
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / 'config' / 'paper_cdpr.yaml'
 RIGID = REPO / 'test' / 'data' / 'rigid_cdpr.yaml'

@@ -19,6 +19,8 @@ from msg_adapters.pose import pose_message
 from msg_adapters.wrench import wrench_message
 from test_node_dds import PAPER, Harness, ros  # noqa: F401 - ros: the module's ROS fixture
 
+pytestmark = pytest.mark.ros   # nodes, DDS, worker processes, signals
+
 PARAMETERS = {'node.rebuild': 'worker', 'model.method': 'fem_sag',
               'model.elements_per_cable': 8}
 

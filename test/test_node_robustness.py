@@ -40,6 +40,8 @@ from msg_adapters.validation import InvalidMessage, check_frame, ns_to_stamp
 from msg_adapters.wrench import wrench_message
 from test_feasibility import _many_cables as many_cable_robot
 
+pytestmark = pytest.mark.ros   # nodes, DDS, worker processes, signals
+
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / 'config' / 'paper_cdpr.yaml'
 NOW_NS = 1_800_000_000 * 10 ** 9          # the node's clock in these tests (2027)

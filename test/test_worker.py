@@ -23,6 +23,8 @@ from cdpr_dynamics.analysis.live import LivePredictor, rotated_quaternion
 from cdpr_dynamics.ros.worker import (NICE, BackgroundStatics, JobFailed, StaticsRequest, Worker,
                                       WorkerError)
 
+pytestmark = pytest.mark.ros   # nodes, DDS, worker processes, signals
+
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 120.0
 
