@@ -25,12 +25,22 @@ def _say_interrupted(prog: str) -> None:
         pass
 
 
+def _stop_children() -> None:
+    """Stop the children started in sessions of their own (a node) that the interrupted code
+    did not stop (cdpr_dynamics.ros.process.start_child: only if it was ever imported)."""
+    process = sys.modules.get('cdpr_dynamics.ros.process')
+    if process is not None:
+        process.stop_started()
+
+
 def interruptible(prog: str):
     """Decorate a console script's ``main(argv=None) -> int``: Ctrl-C ends it with the one line
     ``PROG: interrupted`` on stderr and status 130, never a traceback.
 
     The first SIGINT raises KeyboardInterrupt in the main thread, so ``finally`` blocks stop
-    child processes and close files; a second SIGINT while that clean-up runs ends the process
+    child processes and close files (and children of
+    :func:`cdpr_dynamics.ros.process.start_child` the interrupted code had not stopped are
+    stopped after them); a second SIGINT while that clean-up runs ends the process
     at once (``os._exit``), still with one line and 130. The previous handler is restored when
     ``main`` returns (in-process callers, tests)."""
     def decorate(main):
@@ -54,6 +64,7 @@ def interruptible(prog: str):
             try:
                 return main(argv)
             except KeyboardInterrupt:
+                _stop_children()
                 say()
                 return INTERRUPTED_STATUS
             finally:

@@ -166,7 +166,7 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
 
     from rcl_interfaces.srv import GetParameters
 
-    from cdpr_dynamics.ros.process import start_node, stop_process
+    from cdpr_dynamics.ros.process import start_child, start_node, stop_process
     from msg_adapters.diagnostics import read_statuses
     from msg_adapters.frf_service import request_message
     from msg_adapters.validation import s_to_stamp, stamp_to_ns
@@ -289,9 +289,8 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
         result = {}
         try:
             # the reference: a trivial rclpy echo node (wrench in, Vector3Stamped out)
-            echo = subprocess.Popen([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node',
-                                     'echo'], env=env, stdout=log, stderr=subprocess.STDOUT,
-                                    start_new_session=True)
+            echo = start_child([sys.executable, '-m', 'cdpr_dynamics.cli.bench_node', 'echo'],
+                               env=env, stdout=log, stderr=subprocess.STDOUT)
             try:
                 with cond:
                     if not cond.wait_for(lambda: pub.get_subscription_count() > 0, 30.0):

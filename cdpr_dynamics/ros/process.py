@@ -132,15 +132,41 @@ def node_command() -> list[str]:
     return [str(path)] if path else [sys.executable, '-m', 'cdpr_dynamics.ros.process']
 
 
+_STARTED: list = []      # children started by start_child, for stop_started
+
+
+def start_child(command, **popen_kwargs) -> subprocess.Popen:
+    """``subprocess.Popen(command, start_new_session=True, **popen_kwargs)``, kept for
+    :func:`stop_started`. A child in a session of its own does not get a terminal's Ctrl-C:
+    its parent must stop it. SIGINT is held back (in the main thread) until the child is
+    recorded, so a Ctrl-C during the start cannot leave it running unrecorded."""
+    main = threading.current_thread() is threading.main_thread()
+    if main:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        proc = subprocess.Popen(command, start_new_session=True, **popen_kwargs)
+        _STARTED[:] = [p for p in _STARTED if p.poll() is None] + [proc]
+    finally:
+        if main:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    return proc
+
+
+def stop_started(timeout_s: float = 10.0) -> None:
+    """Stop every child of :func:`start_child` still running (:func:`stop_process`)."""
+    while _STARTED:
+        stop_process(_STARTED.pop(), timeout_s)
+
+
 def start_node(params_file, env: dict, parameters: dict | None = None, stdout=None,
                stderr=None, extra_args=()) -> subprocess.Popen:
-    """Start ``dynamics_node --ros-args --params-file FILE [-p name:=value ...]``."""
+    """Start ``dynamics_node --ros-args --params-file FILE [-p name:=value ...]`` in a session
+    of its own (:func:`start_child`)."""
     command = node_command() + ['--ros-args', '--params-file', str(params_file)]
     for name, value in (parameters or {}).items():
         command += ['-p', f'{name}:={value}']
     command += list(extra_args)
-    return subprocess.Popen(command, env=env, stdout=stdout, stderr=stderr,
-                            start_new_session=True)
+    return start_child(command, env=env, stdout=stdout, stderr=stderr)
 
 
 def stop_process(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
