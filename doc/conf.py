@@ -26,7 +26,7 @@ myst_enable_extensions = ['dollarmath']
 myst_heading_anchors = 3
 
 autodoc_member_order = 'bysource'
-autodoc_typehints = 'description'
+autodoc_typehints = 'signature'
 autodoc_default_options = {'undoc-members': False}
 
 html_theme = 'alabaster'
@@ -34,3 +34,4 @@ html_title = 'cdpr_dynamics'
 html_theme_options = {'description': 'Live vibration prediction for cable-driven parallel robots',
                       'fixed_sidebar': True}
 suppress_warnings = ['ref.python']   # builtin type names (bytes, type) that match attributes
+suppress_warnings += ['myst.header']   # a topic page's heading levels are its own affair

@@ -1,6 +1,6 @@
-"""cdpr_demo as a user's first experience (issue 10 item 6, issue 11 item 5's in-process
-recording): the start waits for the match, the counts it prints are what happened and what its
-MCAP file holds, the load comes from the config, and its messages offer only its own flags."""
+"""cdpr_demo as a user's first experience, with its in-process recording: the start waits for
+the match, the counts it prints are what happened and what its MCAP file holds, the load comes
+from the config, and its messages offer only its own flags."""
 from __future__ import annotations
 
 import ast

@@ -1,4 +1,4 @@
-"""Strict configuration (SPEC section 3), hostile config files and clean Ctrl-C of the tools.
+"""Strict configuration, hostile config files and clean Ctrl-C of the tools.
 
 Library level: names, missing physical parameters, defaults of the numerical settings, node
 keys, every hostile-file guard. Subprocess level: ``cdpr_analyze`` (and the other tools) and

@@ -138,3 +138,13 @@ def test_a_docstring_that_is_not_clean_rst_is_shown_verbatim():
     lines = ['The norm |x| of x.']
     cdpr_docs._process_docstring(None, 'function', 'f', None, {}, lines)
     assert lines == ['The norm \\|x\\| of x.']
+
+
+def test_a_page_no_toctree_names_is_linked_from_the_front_page():
+    index = (DOC / 'index.md').read_text()
+    listed = cdpr_docs.other_pages(index).splitlines()[4:-1]
+    named = cdpr_docs.other_pages('').splitlines()[4:-1]         # nothing named: every page
+    assert set(named) == source_pages() - {'index'}
+    assert 'getting_started' not in listed and set(listed) <= set(named)
+    assert cdpr_docs.other_pages('```{toctree}\n:maxdepth: 1\n\n' + '\n'.join(named) + '\n```') \
+        == ''

@@ -1,4 +1,4 @@
-"""Regression tests of issue 14 (findings 1-10): clocks, bounded work, the service, echoes,
+"""The node in charge of its own time and work: clocks, bounded work, the service, echoes,
 costs and shutdown. The ROS-free cases run in-process in seconds; the node cases start
 ``dynamics_node`` as its own process under real DDS (isolated domain, see node_process).
 

@@ -1,4 +1,4 @@
-"""The light pose update (issue 11, deliverable 6): each shortcut against what it replaces.
+"""The light pose update: each shortcut against what it replaces.
 
 * geometry with its tests on Python floats and |l_i| without np.linalg.norm's wrapper: the same
   arrays, bit for bit, as numpy's norm and cross product, and the same errors;

@@ -1,4 +1,4 @@
-"""Sag-consistent statics and the validity rules (SPEC section 4) against independent answers.
+"""Sag-consistent statics and the validity rules against independent answers.
 
 Convention (``cdpr_dynamics.models.catenary``): F is the force applied at the platform end B ON
 the cable, sigma the unstrained arc length from B, gamma the weight per unstrained length, e the

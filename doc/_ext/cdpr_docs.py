@@ -11,7 +11,9 @@ from the code or from committed data, so the text can never drift from what it d
   ``cdpr_tradeoff --csv``;
 - ``cdpr:tests``: each test module and the first paragraph of its docstring;
 - ``cdpr:api``: an ``automodule`` per module of the packages ``cdpr_dynamics`` and
-  ``msg_adapters``, grouped by layer.
+  ``msg_adapters``, grouped by layer;
+- ``cdpr:other-pages``: a toctree of every page of ``doc/`` that no other toctree of the page
+  names, so a topic page added to ``doc/`` is linked (and the build stays free of warnings).
 
 Docstrings are written for ``help()`` as much as for Sphinx: one whose reStructuredText does not
 parse cleanly is shown as a literal block instead of failing the warnings-as-errors build.
@@ -198,8 +200,24 @@ def api_reference() -> str:
     return '\n'.join(out)
 
 
-def generated(kind: str) -> str:
-    """The Markdown for marker ``kind``."""
+_TOCTREE = re.compile(r'```\{toctree\}\n(.*?)```', re.S)
+
+
+def other_pages(text: str) -> str:
+    """A toctree of the pages of ``doc/`` that the toctrees in ``text`` do not name."""
+    named = {line.strip() for block in _TOCTREE.findall(text) for line in block.splitlines()
+             if line.strip() and not line.startswith(':')}
+    pages = sorted(str(p.relative_to(DOC).with_suffix('')) for suffix in ('*.md', '*.rst')
+                   for p in DOC.rglob(suffix)
+                   if p.relative_to(DOC).parts[0] not in ('_ext', 'benchmarks', '_build'))
+    rest = [page for page in pages if page not in named | {'index'}]
+    if not rest:
+        return ''
+    return '\n'.join(['```{toctree}', ':maxdepth: 1', ':caption: Topics', ''] + rest + ['```'])
+
+
+def generated(kind: str, text: str = '') -> str:
+    """The Markdown for marker ``kind`` of a page whose source is ``text``."""
     from cdpr_dynamics.analysis import config
     makers = {
         'parameters': lambda: parameter_table(config.PARAMETERS),
@@ -208,6 +226,7 @@ def generated(kind: str) -> str:
         'tradeoff': tradeoff_tables,
         'tests': test_list,
         'api': api_reference,
+        'other-pages': lambda: other_pages(text),
     }
     if kind not in makers:
         raise ValueError(f'unknown generated part <!-- cdpr:{kind} -->')
@@ -215,7 +234,7 @@ def generated(kind: str) -> str:
 
 
 def _source_read(app, docname, source):
-    source[0] = MARKER.sub(lambda m: generated(m[1]), source[0])
+    source[0] = MARKER.sub(lambda m: generated(m[1], source[0]), source[0])
 
 
 _ROLE = re.compile(r':[\w:.-]+:`')
