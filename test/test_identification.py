@@ -199,3 +199,23 @@ def test_a_noisy_decay_gives_right_modes_or_none(seed):
         assert abs(mode.frequency_hz / f[j] - 1) < 0.005
         assert abs(mode.frequency_hz - f[j]) < 4 * mode.std_hz
         assert abs(mode.damping_ratio / zeta[j] - 1) < 0.2
+
+
+def test_taps_at_one_pose_are_separate_decays():
+    """Quiet at the pose for 4 s, a tap (the decay from U0), a second, larger tap 9 s later:
+    two decays, each starting at its tap, the quiet time before the first said so."""
+    settings = soft_robot()
+    position = np.array([0.1, -0.05, 1.3])
+    t1, u1, _, _, f, zeta, _ = decay(settings, position, duration_s=9.0)
+    t2, u2, *_ = decay(settings, position, U0 * 2, duration_s=12.0)
+    quiet = np.zeros((400, 6))
+    u = np.concatenate([quiet, u1, u2 + u1[-1]])
+    t = np.arange(u.shape[0]) * 0.01
+    rows = pose_samples(position, u, 1e-4, np.random.default_rng(4))
+    result = identify_record(t, rows, options=Options(f_min_hz=1.0))
+    assert len(result.stretches) == 2
+    starts = [s.start_s for s in result.stretches]
+    assert abs(starts[0] - 4.0) < 0.6 and abs(starts[1] - (4.0 + t1[-1] + 0.01)) < 0.6, starts
+    assert any('before an excitation' in reason for *_, reason in result.skipped)
+    for stretch in result.stretches:
+        check_modes(stretch.modes, f, zeta, count=4)

@@ -7,15 +7,17 @@ acceleration). :func:`identify_record`:
    (shorter gaps, dropped samples, are filled by linear interpolation and counted);
 2. finds the rest stretches: where the pose low-passed well below the modes (zero-phase
    Butterworth at ``f_min_hz / 2``) moves slower than ``rest_speed_m_s`` (and
-   ``rest_speed_rad_s``) for at least ``min_duration_s``; the motion between them, a stretch
-   that starts mid-motion included, is skipped and reported; the part of a stretch where the
-   oscillation exceeds ``max_amplitude_m`` is skipped too (beyond the linear model);
-3. identifies each stretch's modes (its first ``max_window_s``) by the eigensystem
-   realisation algorithm (ERA: the block
-   Hankel matrix of the free decay, its SVD, poles from the shifted Hankel matrix) over a range
-   of model orders, keeps the poles that are stable over the orders, and refines them by a
-   variable-projection least-squares fit of the decay sum_r Re(a_r e^{s_r t}) to the samples,
-   whose Jacobian gives the standard uncertainty of each frequency and damping ratio.
+   ``rest_speed_rad_s``); the motion between them, a stretch that starts mid-motion
+   included, is skipped and reported; the part of a stretch where the oscillation exceeds
+   ``max_amplitude_m`` is skipped too (beyond the linear model); each excitation within a
+   stretch starts a decay of its own (:func:`decay_spans`), used if at least
+   ``min_duration_s`` long;
+3. identifies each decay's modes (its first ``max_window_s``) by the eigensystem realisation
+   algorithm (ERA: the block Hankel matrix of the free decay, its SVD, poles from the shifted
+   Hankel matrix) over a range of model orders, keeps the poles that are stable over the
+   orders, and refines them by a variable-projection Levenberg-Marquardt fit of the decay
+   sum_r Re(a_r e^{s_r t}) to the samples, whose Jacobian gives the standard uncertainty of
+   each frequency and damping ratio.
 
 The mode's direction is its residue vector over the platform DOFs (x y z, rotation vector),
 phase-aligned and normalised; an IMU's angular velocity and acceleration residues are divided
@@ -138,22 +140,53 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))
 
 
-def rest_mask(t: np.ndarray, dofs: np.ndarray, kind: str, options: Options) -> np.ndarray:
-    """Samples where the platform's pose low-passed at f_min / 2 moves slower than the rest
-    speeds (an IMU: every sample; it has no pose to move)."""
-    if kind != 'pose':
-        return np.ones(t.size, dtype=bool)
+def slow_part(t: np.ndarray, y: np.ndarray, f_min_hz: float) -> np.ndarray:
+    """``y`` low-passed at ``f_min_hz / 2`` (zero-phase 4th-order Butterworth); its mean where
+    the record is too short or the cutoff above Nyquist."""
     dt = t[1] - t[0]
-    cutoff = 0.5 * options.f_min_hz
+    cutoff = 0.5 * f_min_hz
     if t.size < 30 or cutoff >= 0.5 / dt:
-        return np.zeros(t.size, dtype=bool)
+        return np.broadcast_to(y.mean(axis=0), y.shape)
     sos = scipy.signal.butter(4, cutoff, fs=1.0 / dt, output='sos')
     padlen = min(t.size - 1, int(3.0 / (cutoff * dt)))
-    slow = scipy.signal.sosfiltfilt(sos, dofs, axis=0, padlen=padlen)
-    speed = np.gradient(slow, dt, axis=0)
+    return scipy.signal.sosfiltfilt(sos, y, axis=0, padlen=padlen)
+
+
+def rest_mask(t: np.ndarray, slow: np.ndarray, options: Options) -> np.ndarray:
+    """Samples where the slow part of the pose moves slower than the rest speeds."""
+    if t.size < 30:
+        return np.zeros(t.size, dtype=bool)
+    speed = np.gradient(slow, t[1] - t[0], axis=0)
     linear = np.linalg.norm(speed[:, :3], axis=1) < options.rest_speed_m_s
     angular = np.linalg.norm(speed[:, 3:], axis=1) < options.rest_speed_rad_s
     return linear & angular
+
+
+def decay_spans(fast: np.ndarray, dt: float, f_min_hz: float) -> list[tuple[int, int]]:
+    """(start, end) of the free decays in the oscillating part ``fast`` (n, c) of a rest
+    stretch: each starts at the peak of its envelope (moving mean over 1 / f_min of the
+    energy, channels at unit variance) and ends where the envelope grows to 4 times its least
+    value since the peak (a new excitation: a tap, a release)."""
+    n = fast.shape[0]
+    width = max(int(round(1.0 / (f_min_hz * dt))), 5)
+    scale = fast.std(axis=0)
+    scale[scale == 0] = 1.0
+    energy = np.sum((fast / scale) ** 2, axis=1)
+    envelope = np.convolve(energy, np.ones(width) / width, mode='same')
+    spans, start = [], 0
+    while n - start > width:
+        ahead = envelope[start:]
+        fallen = np.flatnonzero(ahead < 0.5 * np.maximum.accumulate(ahead))
+        if fallen.size == 0:
+            break
+        peak = start + int(np.argmax(ahead[:fallen[0]]))
+        after = envelope[peak:]
+        least = np.minimum.accumulate(after)
+        grown = np.flatnonzero(after > 4.0 * least)
+        end = n if grown.size == 0 else peak + int(np.argmin(after[:grown[0]]))
+        spans.append((max(peak - width // 2, start), end))
+        start = max(end, peak + 1)
+    return spans
 
 
 # --------------------------------------------------------------------------- ERA
@@ -359,6 +392,25 @@ def _envelope_start(y: np.ndarray, limit: float) -> int:
     return 0 if over.size == 0 else int(over[-1]) + 1
 
 
+def _identify_span(result: RecordResult, t, y, values, first: int, end: int, kind: str,
+                   options: Options, f_max: float, posed: bool) -> None:
+    """Identify samples [first, end) of a piece as one free decay, or say why not."""
+    dt = t[1] - t[0]
+    span = (float(t[first]), float(t[end - 1]))
+    if (end - first) * dt < options.min_duration_s:
+        result.skipped.append(span + (f'free decay of {(end - first) * dt:.3g} s, less than '
+                                      f'{options.min_duration_s:g} s',))
+        return
+    last = min(end, first + int(round(options.max_window_s / dt)) + 1)
+    modes = identify_decay(t[first:last], y[first:last], kind, options, f_max)
+    if not modes:
+        result.skipped.append(span + ('no mode stands out of the noise',))
+        return
+    pose = (mean_pose(values[first:end, :3], values[first:end, 3:7]) if posed
+            else np.full(7, np.nan))
+    result.stretches.append(Stretch(span[0], span[1], pose, tuple(modes)))
+
+
 def identify_record(t_s, samples, kind: str = 'pose', options: Options = Options(),
                     poses=None) -> RecordResult:
     """Identify every free decay at rest in a record.
@@ -400,7 +452,9 @@ def identify_record(t_s, samples, kind: str = 'pose', options: Options = Options
         y = values[:, offset:]
         if pose_samples is not None and kind == 'pose':
             y = pose_dofs(values[:, :3], values[:, 3:7])
-        rest = rest_mask(t, y, kind, options) if kind == 'pose' else np.ones(t.size, bool)
+        slow = slow_part(t, y, options.f_min_hz) if kind == 'pose' else \
+            np.broadcast_to(y.mean(axis=0), y.shape)
+        rest = rest_mask(t, slow, options) if kind == 'pose' else np.ones(t.size, bool)
         position = 0
         for start, end in _runs(rest):
             if start > position:
@@ -414,20 +468,15 @@ def identify_record(t_s, samples, kind: str = 'pose', options: Options = Options
                     result.skipped.append((float(t[start]), float(t[first - 1]),
                                            f'oscillation larger than {options.max_amplitude_m:g}'
                                            ' m (beyond the linear model)'))
-            span = (float(t[first]), float(t[end - 1]))
-            if (end - first) * dt < options.min_duration_s:
-                if end > first:
-                    result.skipped.append(span + (f'at rest for {(end - first) * dt:.3g} s, '
-                                                  f'less than {options.min_duration_s:g} s',))
-                continue
-            last = min(end, first + int(round(options.max_window_s / dt)) + 1)
-            modes = identify_decay(t[first:last], y[first:last], kind, options, f_max)
-            if not modes:
-                result.skipped.append(span + ('no mode stands out of the noise',))
-                continue
-            pose = (mean_pose(values[first:end, :3], values[first:end, 3:7])
-                    if pose_samples is not None else np.full(7, np.nan))
-            result.stretches.append(Stretch(span[0], span[1], pose, tuple(modes)))
+            done = first
+            for a, b in decay_spans(y[first:end] - slow[first:end], dt, options.f_min_hz) \
+                    or [(0, end - first)]:
+                if (first + a - done) * dt >= 1.0:
+                    result.skipped.append((float(t[done]), float(t[first + a - 1]),
+                                           'at rest before an excitation (no free decay)'))
+                _identify_span(result, t, y, values, first + a, first + b, kind, options,
+                               f_max, pose_samples is not None)
+                done = first + b
         if position < t.size:
             result.skipped.append((float(t[position]), float(t[-1]),
                                    'moving (not at a rest pose)'))
