@@ -125,3 +125,33 @@ def test_analyze_checks_command_line_overrides_like_the_config(args, message):
     assert out.returncode == 1 and 'Traceback' not in out.stderr
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], out.stderr
+
+
+def test_shaper_command_prints_what_the_node_publishes(tmp_path):
+    """cdpr_analyze --shaper at a pose: the JSON's controller block is the library's (the
+    shaper of the lowest platform modes, its notches, the modes table, the length offsets),
+    and the lines printed carry the impulses."""
+    from cdpr_dynamics.analysis.controller import controller_shaping, length_offsets
+    from cdpr_dynamics.analysis.pipeline import (build_system, damping_for, equilibrium,
+                                                 system_modes)
+    config = write_config(tmp_path, **{'damping.modal_ratio': 0.02})
+    out = analyze('--config', config, '--method', 'spring', '--shaper', 'ei', '--shaper-modes',
+                  '2', '--notch-sample-rate', '500', '--position', '0.3', '-0.2', '1.1',
+                  '--duration', '0.01', '--json', tmp_path / 'a.json')
+    assert out.returncode == 0, out.stderr
+    doc = json.loads((tmp_path / 'a.json').read_text())['controller']
+    settings = load_settings(config).replace(method='spring',
+                                             initial_position_m=np.array([0.3, -0.2, 1.1]))
+    eq = equilibrium(settings)
+    system = build_system(settings, eq)
+    shaping = controller_shaping(system_modes(settings, system),
+                                 damping_for(settings, system), 'ei', 2, 500.0)
+    assert_allclose(doc['shaper']['times_s'], shaping.shaper.times_s)
+    assert_allclose(doc['shaper']['amplitudes'], shaping.shaper.amplitudes)
+    assert_allclose(doc['shaper']['notches'], shaping.notches)
+    assert_allclose(doc['length_offsets_m'], length_offsets(eq))
+    assert doc['vibration_modes']['labels'][:4] == ['frequency_hz', 'damping_ratio',
+                                                     'platform_energy_fraction', 'kind']
+    assert 'ei shaper for ' in out.stdout and out.stdout.count('  t = ') == 9
+    bad = analyze('--shaper', 'zvd', '--shaper-modes', '0', '--duration', '0.01')
+    assert bad.returncode == 1 and bad.stderr.count('\n') == 1, bad.stderr

@@ -124,3 +124,49 @@ def controller_shaping(found: Modes, damping: Damping, kind: str, count: int,
 def length_offsets(eq: Equilibrium) -> np.ndarray:
     """(n,) unstretched length minus straight chord per cable (m; module docstring)."""
     return np.asarray(eq.unstretched_length_m, dtype=float) - eq.geometry.length_m
+
+
+def controller_document(system: PlatformSystem, found: Modes, damping: Damping, eq: Equilibrium,
+                        f_max_hz: float, kind: str, count: int, sample_rate_hz: float,
+                        point_m=(0.0, 0.0, 0.0)) -> dict:
+    """What the node publishes for a controller, as JSON: ``vibration_modes`` (labels,
+    rows), the ``kind`` shaper (``none``: none), its notches and the length offsets."""
+    table = mode_table(system, found, damping, f_max_hz, point_m)
+    doc = {'vibration_modes': {'labels': list(mode_labels(system.platform_dofs)),
+                               'rows': table.tolist()},
+           'length_offsets_m': length_offsets(eq).tolist()}
+    if kind != 'none':
+        shaping = controller_shaping(found, damping, kind, count, sample_rate_hz)
+        doc['shaper'] = {'kind': kind, 'modes_hz': shaping.frequency_hz.tolist(),
+                         'damping_ratios': shaping.damping_ratio.tolist(),
+                         'times_s': [] if shaping.shaper is None
+                         else shaping.shaper.times_s.tolist(),
+                         'amplitudes': [] if shaping.shaper is None
+                         else shaping.shaper.amplitudes.tolist(),
+                         'notch_sample_rate_hz': sample_rate_hz,
+                         'notches': shaping.notches.tolist(),
+                         'skipped': list(shaping.skipped)}
+    return doc
+
+
+def controller_lines(doc: dict) -> list[str]:
+    """Lines a tool prints of :func:`controller_document`."""
+    lines = [f'length offsets (unstretched - straight, mm): '
+             f'{np.round(np.asarray(doc["length_offsets_m"]) * 1e3, 4).tolist()}']
+    shaper = doc.get('shaper')
+    if shaper is None:
+        return lines
+    if not shaper['times_s']:
+        return lines + [f'{shaper["kind"]} shaper: no underdamped platform mode to shape'
+                        + ''.join(f'; {s}' for s in shaper['skipped'])]
+    modes = ', '.join(f'{f:.4g} Hz (zeta {z:.3g})'
+                      for f, z in zip(shaper['modes_hz'], shaper['damping_ratios']))
+    lines.append(f'{shaper["kind"]} shaper for {modes}: {len(shaper["times_s"])} impulses, '
+                 f'{shaper["times_s"][-1] * 1e3:.2f} ms')
+    lines += [f'  t = {t:.6f} s  a = {a:.6f}'
+              for t, a in zip(shaper['times_s'], shaper['amplitudes'])]
+    for f, c in zip(shaper['modes_hz'], shaper['notches']):
+        lines.append(f'notch {f:.4g} Hz at {shaper["notch_sample_rate_hz"]:g} Hz: b = '
+                     f'{np.round(c[:3], 9).tolist()}, a = {np.round(c[3:], 9).tolist()}')
+    lines += [f'  {s}' for s in shaper['skipped']]
+    return lines

@@ -3,7 +3,8 @@
     cdpr_analyze [--config PATH] [--method M [M ...]] [--elements N] [--json PATH]
                  [--plot-dir DIR] [--f-min HZ] [--f-max HZ] [--n-points N]
                  [--excitation-hz F [F ...]] [--duration S] [--slack-aware]
-                 [--plot-direction {x,y,z,rx,ry,rz}]
+                 [--plot-direction {x,y,z,rx,ry,rz}] [--position X Y Z]
+                 [--shaper {none,zv,zvd,ei} [--shaper-modes N] [--notch-sample-rate HZ]]
 
 Writes the JSON of SPEC section 6 (for the first method; every method under ``methods``) and
 PNG plots (:mod:`cdpr_dynamics.analysis.figures`): the FRF along ``--plot-direction`` (one line per
@@ -31,16 +32,21 @@ from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.dynamics.modes import modes
 from cdpr_dynamics.mechanics.robot import DOF_NAMES
 from cdpr_dynamics.selection.auto import accuracy_warnings, choose_model
+from cdpr_dynamics.analysis.controller import controller_document, controller_lines
 from cdpr_dynamics.analysis.live import harmonic_history
+from cdpr_dynamics.dynamics import shapers
 from cdpr_dynamics.dynamics.slack import peak_displacement
 
 
 def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration_s: float,
-                   progress=None, slack_aware: bool = False) -> dict:
+                   progress=None, slack_aware: bool = False,
+                   controller: dict | None = None) -> dict:
     """The SPEC section 6 JSON document of one method at equilibrium ``eq``.
 
     ``slack_aware`` adds to each time history the slack-aware one (cables carry no
-    compression, :mod:`cdpr_dynamics.dynamics.slack`) under ``slack_aware``.
+    compression, :mod:`cdpr_dynamics.dynamics.slack`) under ``slack_aware``; ``controller``
+    (``kind``, ``count``, ``sample_rate_hz``) adds what the node publishes for a controller
+    (:func:`~cdpr_dynamics.analysis.controller.controller_document`) under ``controller``.
     """
     watch = Stopwatch()
     choice = None
@@ -112,7 +118,13 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
               f'model.method = {settings.method} as configured'}
     if choice:
         chosen['estimated_error'] = choice.estimated_error
+    extra = {}
+    if controller is not None and found is not None:
+        extra['controller'] = controller_document(
+            system, found, damping, eq, settings.f_max_hz, controller['kind'],
+            controller['count'], controller['sample_rate_hz'], settings.frf_point_m)
     return {
+        **extra,
         'method': assembly.method,
         'dofs': system.dofs,
         'tensions_n': eq.tensions.tension_n.tolist(),
@@ -242,6 +254,16 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument('--duration', type=float, default=1.0, help='time history length (s)')
     parser.add_argument('--slack-aware', action='store_true',
                         help='also a time history where cables carry no compression')
+    parser.add_argument('--position', type=float, nargs=3, metavar=('X', 'Y', 'Z'),
+                        help='analyse at this platform position (m) instead of '
+                        'robot.initial_position')
+    parser.add_argument('--shaper', choices=('none',) + shapers.KINDS,
+                        help='print (and write to the JSON) the input shaper and notch filters '
+                        'the node publishes, the modes table and the length offsets')
+    parser.add_argument('--shaper-modes', type=int, default=1,
+                        help='lowest platform modes the shaper covers (default 1)')
+    parser.add_argument('--notch-sample-rate', type=float, default=1000.0,
+                        help='sample rate of the notch biquads (Hz, default 1000)')
     return parser.parse_args(argv)
 
 
@@ -250,7 +272,14 @@ def settings_for(args: argparse.Namespace) -> Settings:
     settings = load_settings(args.config)
     overrides = {'f_min_hz': args.f_min, 'f_max_hz': args.f_max, 'n_points': args.n_points,
                  'elements_per_cable': args.elements}
+    position = getattr(args, 'position', None)
+    if position is not None:
+        overrides['initial_position_m'] = np.asarray(position, dtype=float)
     settings = settings.replace(**{k: v for k, v in overrides.items() if v is not None})
+    if getattr(args, 'shaper', None) and (args.shaper_modes < 1 or
+                                          not args.notch_sample_rate > 0):
+        raise ConfigError('--shaper-modes must be at least 1 and --notch-sample-rate '
+                          'positive')
     if args.duration <= 0 or any(not f > 0 for f in args.excitation_hz):
         raise ConfigError('--duration and --excitation-hz must be positive')
     direction = getattr(args, 'plot_direction', 'z')
@@ -266,8 +295,13 @@ def run(args: argparse.Namespace, progress=None) -> dict:
     watch = Stopwatch()
     with watch('tensions'):
         eq = equilibrium(settings)
+    controller = None
+    if getattr(args, 'shaper', None):
+        controller = {'kind': args.shaper, 'count': args.shaper_modes,
+                      'sample_rate_hz': args.notch_sample_rate}
     documents = [analyze_method(settings.replace(method=m), eq, args.excitation_hz,
-                                args.duration, progress, getattr(args, 'slack_aware', False))
+                                args.duration, progress, getattr(args, 'slack_aware', False),
+                                controller)
                  for m in (args.method or [settings.method])]
     result = dict(documents[0])
     result['timings_s'] = {**watch.seconds, **result['timings_s']}
@@ -309,6 +343,9 @@ def main(argv=None) -> int:
     freqs = ', '.join(f'{f:.2f}' for f in result['natural_frequencies_hz'][:6])
     print(f"{result['method']}: {result['dofs']} DOFs; tensions "
           f"{np.round(result['tensions_n'], 1).tolist()} N; lowest modes {freqs} Hz")
+    if 'controller' in result:
+        for line in controller_lines(result['controller']):
+            print(line)
     for warning in result['warnings']:
         print(f'warning: {warning}')
     return 0
