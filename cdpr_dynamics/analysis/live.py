@@ -425,7 +425,7 @@ class LivePredictor:
         self._tension0 = row_norm(system.assembly.end_force_n)
         self._saved = np.empty_like(self.integrator._state)
         self._held = None                   # HeldLoadSteps of this model, made on first use
-        self._platform_system = None        # the compression-free model's, on first use
+        self._slack_stepper = None          # the compression-free model's, on first use
         self._interior = None               # interior_map of the model, on first use
         self._settle_steps = max(1, math.ceil(SETTLE_S / self.settings.dt_s - 1e-9))
         if self._stepper is not None:       # slack across the pose update: carry on there
@@ -471,20 +471,20 @@ class LivePredictor:
     def _enter_slack(self, q, v, acc=None, force=None) -> None:
         """Switch to the compression-free model at (q, q') (and q'' or the load ``force``
         whose balance gives it)."""
-        system = self._platform_system
-        if system is None:
+        stepper = self._slack_stepper           # one per pose: made on the first slack
+        if stepper is None:
             method = platform_only_method(self.system.assembly.method)
             system = self.system
             if system.assembly.interior_dofs or system.assembly.method != method:
                 system = build_system(self.settings, self.eq, method, 1)
-            self._platform_system = system
-        s = self.settings
-        stepper = SlackStepper(system, self.integrator.damping, s.dt_s, s.newmark_alpha,
-                               s.newmark_beta)
+            s = self.settings
+            stepper = self._slack_stepper = SlackStepper(
+                system, self.integrator.damping, s.dt_s, s.newmark_alpha, s.newmark_beta)
         if acc is None:
             stepper.start(q, v, force)
         else:
-            stepper.q, stepper.v, stepper.acc = (np.array(x, dtype=float) for x in (q, v, acc))
+            stepper.start(q, v, np.zeros_like(stepper.q))
+            stepper.acc = np.array(acc, dtype=float)
         self._stepper = stepper
         self._taut_steps = 0
 

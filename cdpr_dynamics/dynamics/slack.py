@@ -136,9 +136,13 @@ class CompressionFreeCables:
         is slack): G_i^T K_i G_i with K_i = w_i t t^T + s_i I is w_i h_i h_i^T + s_i G_i^T G_i,
         h_i = G_i^T t_i.
         """
-        n = self.length.shape[0]
-        d = (self._g2 @ q).reshape(n, 3)
-        d_dot = (self._g2 @ qdot).reshape(n, 3)
+        point = self.nd == 3          # a point mass: G_i = I, d_i = q for every cable
+        if point:
+            d, d_dot = q, qdot
+        else:
+            n = self.length.shape[0]
+            d = (self._g2 @ q).reshape(n, 3)
+            d_dot = (self._g2 @ qdot).reshape(n, 3)
         chord = self.chord - d
         length = np.sqrt((chord * chord).sum(axis=1))
         t = chord / length[:, None]
@@ -148,11 +152,12 @@ class CompressionFreeCables:
         per_length = pull / length
         force = pull[:, None] * t - (stiffness_factor * per_length)[:, None] \
             * (d_dot - along[:, None] * t)
-        restoring = self.static_force - self._g2.T @ force.reshape(-1)
         axial = np.where(pull > 0.0, self.k_axial, 0.0) - per_length
-        if self.nd == 3:          # a point mass: G_i = I
+        if point:
+            restoring = self.static_force - force.sum(axis=0)
             tangent = (t.T * axial) @ t + per_length.sum() * self._eye
             return pull, restoring, tangent
+        restoring = self.static_force - self._g2.T @ force.reshape(-1)
         h = np.matmul(t[:, None, :], self.g)[:, 0, :]                         # (n, nd)
         rot = np.tensordot(pull / self.tension, self.rotation, 1)
         restoring += rot @ (q + stiffness_factor * qdot)
