@@ -12,6 +12,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from numpy.testing import assert_allclose
 
 from cdpr_dynamics.cli import demo, demo_figure, demo_plan, demo_results
 from cdpr_dynamics.analysis.config import load_settings
@@ -141,22 +142,31 @@ def test_the_frf_along_the_load_is_the_projection_of_the_complex_response():
     assert demo_results.along(frf, d) == pytest.approx(abs(0.6 * 3 + 0.8 * 4j))
 
 
-def test_rigid_platform_motion_from_the_predicted_pose():
-    """theta recovered from the predicted quaternion (live.rotated_quaternion), the centroid's
-    translation from the reported point's: u_c = u_p - theta x R r."""
-    from cdpr_dynamics.analysis.live import rotated_quaternion
-    rotation = np.eye(3)
-    settings = SimpleNamespace(robot=SimpleNamespace(point_mass=False),
-                               initial_rotation=rotation)
-    r = np.array([0.3, 0.0, 0.0])
-    theta, u_c = np.array([1e-3, -2e-3, 5e-4]), np.array([1e-4, 0.0, -3e-4])
-    u_p = u_c + np.cross(theta, r)
-    quat = rotated_quaternion(rotation, theta)
-    listener = SimpleNamespace(predictions={7: (0.0, *u_p)}, poses={7: (0, 0, 0, *quat)})
-    stamps, q = demo_results._platform_motion(settings, {'node.output_point_m': r},
-                                              listener, np.array([7]))
-    assert stamps.tolist() == [7]
-    assert np.allclose(q[0], np.r_[u_c, theta], atol=1e-12)
+def test_slack_comparison_and_the_taut_amplitude():
+    """The demo's own run of the node's predictor: the paper's 1500 N at 5 Hz on the circle
+    slackens cables (the slack-aware peak above the linear one); at the amplitude it advises no
+    cable slackens in either prediction, at every pose of the circle."""
+    from cdpr_dynamics.analysis.config import node_options
+    settings = load_settings().replace(method='spring')
+    options = node_options({})
+
+    def comparison(amplitude):
+        args = SimpleNamespace(amplitude_n=amplitude, excitation_hz=5.0, duration=1.0,
+                               radius=0.05, wrench_rate=1000.0, pose_rate=50.0)
+        plan = demo_plan.Trajectory(settings, args)
+        return demo_results.slack_comparison(settings, options, plan, 10**18, 1000, 50), plan
+    loud, plan = comparison(1500.0)
+    assert loud.slack.any() and loud.force_linear.min() < 0 <= loud.force_aware.min()
+    assert np.abs(loud.u_aware).max() > np.abs(loud.u_linear).max()
+    assert 'slack' in loud.sentence()
+    taut = loud.taut_amplitude_n(1500.0)
+    assert 0 < taut < 1500.0
+    quiet, _ = comparison(0.98 * taut)
+    assert not quiet.slack.any() and quiet.force_linear.min() > 0
+    assert_allclose(quiet.u_aware, quiet.u_linear, rtol=0, atol=1e-15)
+    assert 'no cable slackens' in quiet.sentence()
+    over, _ = comparison(1.02 * taut)
+    assert over.force_linear.min() < 0
 
 
 def test_the_tension_sentence_says_slack_and_below_minimum():
@@ -235,6 +245,12 @@ def test_the_demo_starts_after_the_match_and_reports_what_its_recording_holds(
     assert (f'poses: 75 published, {result["node_poses_accepted"]} accepted by the node, '
             f'{result["node_poses_rejected"]} rejected') in out
     assert re.search(r'tensions: (the load slackens|no cable slackens)', out), out
+    assert 'prediction: node.slack = aware (the compression-free model while a cable is slack)' \
+        in out and result['slack_mode'] == 'aware'
+    # the node's predictions are the demo's own run of the same predictor on what it sent
+    # (where the node took every input: a busy host drops some from its queues)
+    if (result['node_wrenches_accepted'] == 1500 and result['node_poses_accepted'] == 75):
+        assert result['node_vs_local_max_m'] < 1e-9
     assert f'recorded to {mcap.resolve()}: ' in out
     assert f'wrench {len(holds["wrench"])} of 1500' in out
     assert png.stat().st_size > 20000 and f'wrote {png.resolve()}' in out

@@ -16,9 +16,12 @@ Stamps are ``t0 + k / rate`` (wall clock, integer nanoseconds).
 
 This process counts the wrenches published and the predictions received (matched by stamp),
 waits until the last prediction arrived (or the node is idle), reads the node's pose and
-wrench counts from ``/diagnostics``, estimates the cable tensions under the load
-(``cable_tensions`` plus :func:`~cdpr_dynamics.dynamics.system.tension_change` of the predicted
-platform motion) and says whether the load slackens a cable, calls ``frequency_response`` (per
+wrench counts from ``/diagnostics``, feeds the inputs it sent through the node's own predictor
+twice (:func:`~cdpr_dynamics.cli.demo_results.slack_comparison`: ``node.slack`` aware, the
+node's default, and linear; the node's predictions are the one its ``node.slack`` names), says
+whether and how long the load slackens a cable and what the slack-aware prediction changed, and
+where it does, the largest ``--amplitude-n`` that keeps every cable taut at every pose of the
+circle (the dynamic cable forces included), calls ``frequency_response`` (per
 unit force along the load, the configured model and ``method=spring``) and writes a PNG: load
 and predicted displacement over time, cable tensions with the lowest one, and the FRF |H| (m/N,
 log-log) with the platform modes marked. All traffic (inputs, outputs, diagnostics, markers,
@@ -50,7 +53,7 @@ from cdpr_dynamics.cli.demo_figure import plot
 from cdpr_dynamics.cli.demo_plan import (
     controller_main, DemoError, Load, read_config, stamps_ns, Trajectory)
 from cdpr_dynamics.cli.demo_results import (
-    along, input_sentence, Received, status_count, tension_estimate, TensionEstimate)
+    along, input_sentence, Received, slack_comparison, status_count, TensionEstimate)
 from cdpr_dynamics.analysis.config import default_config_path
 
 PROG = 'cdpr_demo'
@@ -451,7 +454,11 @@ def run(args) -> dict:
         if not got.predictions:
             raise DemoError('no predicted_displacement received')
         model = (listener.status('model') or {'values': {}})['values']
-        tensions = tension_estimate(settings, options, got, t0_ns)
+        comparison = slack_comparison(settings, options, plan, t0_ns, sent['wrenches'],
+                                      sent['poses'])
+        tensions = (TensionEstimate(comparison.t_s, comparison.static_n,
+                                    comparison.force_linear, settings.tension_min_n)
+                    if comparison.t_s.size else 'no wrench the node could predict')
         received = np.array(sorted(got.predictions), dtype=np.int64)
         pred = np.array([got.predictions[s] for s in received])
         latency = (pred[:, 0] - received * 1e-9) * 1e3
@@ -498,6 +505,29 @@ def run(args) -> dict:
                 lines.append(f'wrenches: the cables hold up to {limit:.4g} N along this load '
                              '(both signs, tensions in the box) at 16 poses of the circle: '
                              f'e.g. --amplitude-n {_round_down(0.98 * limit):g}')
+        slack_mode = options['node.slack']
+        matched = [(s, i) for i, s in enumerate(comparison.stamps.tolist())
+                   if s in got.predictions]
+        if matched:
+            mine = comparison.u_aware if slack_mode == 'aware' else comparison.u_linear
+            result['node_vs_local_max_m'] = float(max(
+                np.abs(np.asarray(got.predictions[s][1:]) - mine[i]).max() for s, i in matched))
+        result.update(slack_mode=slack_mode,
+                      slack_fraction=float(comparison.slack.mean()) if matched else 0.0,
+                      peak_aware_m=float(np.abs(comparison.u_aware).max(initial=0.0)),
+                      peak_linear_m=float(np.abs(comparison.u_linear).max(initial=0.0)))
+        lines.append(f'prediction: node.slack = {slack_mode} ('
+                     + ('the compression-free model while a cable is slack' if slack_mode ==
+                        'aware' else 'linear throughout, only a warning while a cable is slack')
+                     + f'); {comparison.sentence()}')
+        taut = comparison.taut_amplitude_n(plan.load.amplitude_n)
+        result['taut_amplitude_n'] = taut
+        if taut is not None and taut < plan.load.amplitude_n:
+            limit = min(taut, result.get('amplitude_limit_n') or np.inf)
+            lines.append('load: no amplitude keeps every cable taut on this circle' if limit <= 0
+                         else 'load: to keep every cable taut at every pose of the circle, '
+                         'dynamic tension included: --amplitude-n '
+                         f'{_round_down(0.98 * limit):g} (at most {limit:.4g} N)')
         if isinstance(tensions, TensionEstimate):
             low, cable, _ = tensions.lowest
             result.update(lowest_tension_n=low, lowest_tension_cable=cable,
@@ -511,7 +541,7 @@ def run(args) -> dict:
                      f'{result["latency_ms_p99"]:.2f} ms; FRF call {frf_ms:.0f} ms, largest |H| '
                      f'{h[peak]:.3g} m/N at {frf["frequency_hz"][peak]:.1f} Hz')
         output = Path(args.output)
-        plot(output, result, got, plan, frf, spring, tensions, t0_ns)
+        plot(output, result, got, plan, frf, spring, tensions, t0_ns, comparison)
         lines.append(f'wrote {output.resolve()}')
         if recorder is not None:
             summary = recorder.close()

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.cli.demo_plan import Trajectory
-from cdpr_dynamics.cli.demo_results import along, Received, TensionEstimate
+from cdpr_dynamics.cli.demo_results import along, Received, SlackComparison, TensionEstimate
 
 
 def _runs(t_s: np.ndarray, period_s: float) -> np.ndarray:
@@ -64,10 +64,13 @@ def _frf_modes(frf: dict) -> list[dict]:
 
 
 def plot(path: Path, result: dict, got: Received, plan: Trajectory, frf: dict,
-         spring: dict | None, tensions: TensionEstimate | str, t0_ns: int) -> None:
+         spring: dict | None, tensions: TensionEstimate | str, t0_ns: int,
+         comparison: SlackComparison | None = None) -> None:
     """The demo's PNG at ``path``: ``got`` (what arrived), the node's ``frf`` and the
     ``spring`` override (per unit force along the load), ``tensions`` (or why there are none),
-    times from ``t0_ns``; ``result`` gives the model and the counts of the title."""
+    times from ``t0_ns``; ``result`` gives the model and the counts of the title;
+    ``comparison``: the slack-aware and linear predictions of the same inputs, both drawn, the
+    slack intervals shaded."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -86,8 +89,17 @@ def plot(path: Path, result: dict, got: Received, plan: Trajectory, frf: dict,
                     else ''))
 
     ax = axes[0]
+    mode = result.get('slack_mode', 'aware')
     ax.plot(_broken(t, period), u * 1e3, lw=0.8, color='C0',
-            label='predicted displacement\nalong the load')
+            label=f'predicted displacement\nalong the load (node, {mode})')
+    slack_spans = []
+    if comparison is not None and comparison.t_s.size:
+        other = comparison.u_linear if mode == 'aware' else comparison.u_aware
+        ax.plot(_broken(comparison.t_s, period), other @ d * 1e3, lw=0.8, ls='--',
+                color='C1', label='linear prediction' if mode == 'aware'
+                else 'slack-aware prediction')
+        slack_spans = _spans(comparison.t_s, comparison.slack, period)
+        shade_intervals(ax, slack_spans, label='a cable slack\n(slack-aware)')
     lonely = _lonely(t, period)
     if lonely.any():
         ax.plot(t[lonely], u[lonely] * 1e3, '.', ms=4, color='C0',
@@ -118,16 +130,19 @@ def plot(path: Path, result: dict, got: Received, plan: Trajectory, frf: dict,
                     drawstyle='steps-post', label=f'cable {i - 1}, static')
         x = _broken(tensions.t_s, period)
         low = tensions.total_n.min(axis=1)
-        ax.plot(x, low, color='k', lw=1.0, label='lowest tension\nunder the load')
+        ax.plot(x, low, color='k', lw=1.0, ls='--', label='lowest cable force,\nlinear')
+        if comparison is not None and comparison.t_s.size:
+            ax.plot(_broken(comparison.t_s, period), comparison.force_aware.min(axis=1),
+                    color='C0', lw=1.0, label='lowest cable force,\nslack-aware')
         lonely = _lonely(tensions.t_s, period)
         if lonely.any():
             ax.plot(tensions.t_s[lonely], low[lonely], '.', ms=4, color='k')
         ax.axhline(tensions.tension_min_n, color='C3', ls='--', lw=0.8, label='tension.min_n')
         ax.axhline(0.0, color='0.3', lw=0.6)
-        shade_intervals(ax, _spans(tensions.t_s, low <= 0.0, period),
-                        label='a cable would be slack')
-        ax.set_title('cable tensions: static (cable_tensions) and the lowest under the load '
-                     '(static + dT of the predicted motion)', fontsize=10)
+        shade_intervals(ax, slack_spans or _spans(tensions.t_s, low <= 0.0, period),
+                        label='a cable slack' if slack_spans else 'a cable would be slack')
+        ax.set_title('cable tensions: static (cable_tensions) and the lowest cable force under '
+                     'the load (its damper included)', fontsize=10)
     else:
         ax.text(0.5, 0.5, str(tensions), ha='center', va='center', transform=ax.transAxes)
         ax.set_title('cable tensions', fontsize=10)

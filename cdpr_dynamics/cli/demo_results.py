@@ -30,12 +30,9 @@ def status_count(status: dict | None, key: str) -> int | None:
 
 @dataclass(frozen=True)
 class TensionEstimate:
-    """Cable tensions under the load, T_i(t) = T_i^static(t) + dT_i(q(t)): the node's
-    ``cable_tensions`` in force at each prediction's stamp plus the quasi-static change
-    :func:`~cdpr_dynamics.dynamics.system.tension_change` of the predicted platform motion q (the
-    model linearised at the initial pose: on the paper robot the 5 cm circle changes dT by up
-    to 5.4 %, checked at its far point).
-    ``t_s`` (nt,) s from t0, ``static_n`` and ``total_n`` (nt, n) N."""
+    """Cable tensions under the load: ``static_n`` (nt, n) N of the pose in force and
+    ``total_n`` (nt, n) N the linear prediction's cable forces (:class:`SlackComparison`) at
+    ``t_s`` (nt,) s from t0."""
 
     t_s: np.ndarray
     static_n: np.ndarray
@@ -67,43 +64,6 @@ class TensionEstimate:
         return f'no cable slackens: lowest tension {low:.1f} N (cable {cable} at {at:.2f} s)'
 
 
-def _platform_motion(settings, options, got: Received, stamps) -> tuple[np.ndarray, np.ndarray]:
-    """(stamps, q (nt, ndof)) of the predictions received: the centroid's translation (the
-    reported point's displacement less theta x R r for ``node.output_point_m`` r) and, for a
-    rigid platform, the small rotation theta = rotvec(q_pred q_cmd^-1) of ``predicted_pose``."""
-    from scipy.spatial.transform import Rotation
-    u = np.array([got.predictions[s][1:] for s in stamps]).reshape(-1, 3)
-    if settings.robot.point_mass:
-        return stamps, u
-    keep = np.array([s in got.poses for s in stamps], dtype=bool)
-    stamps, u = stamps[keep], u[keep]
-    quat = np.array([got.poses[s][3:] for s in stamps]).reshape(-1, 4)
-    commanded = Rotation.from_matrix(settings.initial_rotation)
-    theta = (Rotation.from_quat(quat) * commanded.inv()).as_rotvec() if quat.size else quat[:, :3]
-    arm = settings.initial_rotation @ np.asarray(options['node.output_point_m'], dtype=float)
-    return stamps, np.hstack([u - np.cross(theta, arm), theta])
-
-
-def tension_estimate(settings, options, got: Received, t0_ns: int) -> TensionEstimate | str:
-    """:class:`TensionEstimate` of the predictions received, or the reason there is none."""
-    from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilibrium
-    from cdpr_dynamics.dynamics.system import DynamicsError, tension_change
-    stamps = np.array(sorted(got.predictions), dtype=np.int64)
-    rows = sorted(got.tensions)
-    if not stamps.size or not rows:
-        return 'no predictions or no cable_tensions received'
-    stamps, q = _platform_motion(settings, options, got, stamps)
-    try:
-        system = build_system(settings, equilibrium(settings))
-    except (AnalysisError, DynamicsError, ValueError) as exc:
-        return f'tension estimate unavailable: {exc}'
-    rows = np.array(rows)
-    k = np.clip(np.searchsorted(rows[:, 0], stamps * 1e-9, side='right') - 1, 0, None)
-    static = rows[k, 1:]
-    return TensionEstimate((stamps - t0_ns) * 1e-9, static, static + tension_change(system, q),
-                           settings.tension_min_n)
-
-
 def input_sentence(what: str, sent: int, status: dict | None) -> str:
     """'N published, A accepted by the node, R rejected (kinds; last reason)' from the node's
     ``<what> input`` diagnostics."""
@@ -129,3 +89,92 @@ def along(frf: dict, direction: np.ndarray) -> np.ndarray:
     u = sum(d * frf[f'amplitude_{k}_m'] * np.exp(1j * frf[f'phase_{k}_rad'])
             for d, k in zip(direction, 'xyz'))
     return np.abs(u)
+
+
+@dataclass(frozen=True)
+class SlackComparison:
+    """The demo's inputs fed through the node's own predictor twice, ``node.slack`` aware and
+    linear (:class:`~cdpr_dynamics.analysis.live.LivePredictor`, the same function as the node
+    and ``cdpr_replay``): per wrench ``t_s`` (nt,) s from t0, ``stamps`` (nt,) ns, centroid
+    displacements ``u_aware`` / ``u_linear`` (nt, 3) m, predicted cable forces
+    ``force_aware`` / ``force_linear`` (nt, n) N (with the cables' dampers; 0 while slack for
+    the aware one) and the ``static_n`` (nt, n) tensions of the pose in force."""
+
+    t_s: np.ndarray
+    stamps: np.ndarray
+    u_aware: np.ndarray
+    u_linear: np.ndarray
+    force_aware: np.ndarray
+    force_linear: np.ndarray
+    static_n: np.ndarray
+
+    @property
+    def slack(self) -> np.ndarray:
+        """(nt,) True where the aware prediction has a slack cable."""
+        return ~(self.force_aware > 0.0).all(axis=1)
+
+    def taut_amplitude_n(self, amplitude_n: float) -> float | None:
+        """The largest load amplitude (N) whose linear cable forces stay above zero at every
+        wrench of this run (the load scales the dynamic part T - T_static linearly), or None
+        where the load never lowers a tension."""
+        drop = self.static_n - self.force_linear
+        lowered = drop > 0.0
+        if amplitude_n == 0.0 or not lowered.any():
+            return None
+        return float(amplitude_n * np.min(self.static_n[lowered] / drop[lowered]))
+
+    def sentence(self) -> str:
+        """What the slack-aware prediction changed, in one line."""
+        peak_aware = float(np.abs(self.u_aware).max())
+        peak_linear = float(np.abs(self.u_linear).max())
+        slack = self.slack
+        if not slack.any():
+            return (f'no cable slackens: the slack-aware and linear predictions agree (peak |u| '
+                    f'{peak_aware * 1e3:.3f} mm)')
+        cables = ', '.join(str(i) for i in np.flatnonzero((self.force_aware <= 0).any(axis=0)))
+        return (f'cable(s) {cables} slack {slack.mean():.0%} of the time: slack-aware peak '
+                f'|u| {peak_aware * 1e3:.3f} mm (linear {peak_linear * 1e3:.3f} mm, its lowest '
+                f'cable force {self.force_linear.min():.1f} N)')
+
+
+def slack_comparison(settings, options, plan, t0_ns: int, wrenches: int,
+                     poses: int) -> SlackComparison:
+    """:class:`SlackComparison` of the ``wrenches`` and ``poses`` the controller sent (its
+    stamps and values, poses first at equal stamps, as it publishes them), those the node
+    refuses left out as it leaves them out (a pose without equilibrium, a wrench the cables
+    cannot hold)."""
+    from cdpr_dynamics.analysis.live import LivePredictor
+    from cdpr_dynamics.analysis.pipeline import AnalysisError
+    from cdpr_dynamics.cli.demo_plan import stamps_ns
+    args = plan.args
+    w_stamps = stamps_ns(t0_ns, wrenches, args.wrench_rate)
+    p_stamps = stamps_ns(t0_ns, poses, args.pose_rate)
+    forces, moments = plan.load.at((w_stamps - t0_ns) * 1e-9)
+    predictors = [LivePredictor(settings, options['node.pose_tolerance_m'],
+                                options['node.angle_tolerance_rad'], slack)
+                  for slack in ('aware', 'linear')]
+    n = predictors[0].eq.geometry.length_m.size
+    u = np.zeros((2, wrenches, 3))
+    force = np.zeros((2, wrenches, n))
+    static = np.zeros((wrenches, n))
+    accepted = np.zeros(wrenches, dtype=bool)
+    k = 0
+    for i, stamp in enumerate(w_stamps):
+        while k < poses and p_stamps[k] <= stamp:
+            position = plan.position((p_stamps[k] - t0_ns) * 1e-9)
+            try:
+                for predictor in predictors:
+                    predictor.update_pose(position, plan.quaternion)
+            except AnalysisError:
+                pass                               # the node keeps its last good pose too
+            k += 1
+        if predictors[0].wrench_reason(forces[i], moments[i]):
+            continue
+        accepted[i] = True
+        for j, predictor in enumerate(predictors):
+            u[j, i] = predictor.advance(int(stamp), forces[i], moments[i])
+            force[j, i] = predictor.cable_force_n()
+        static[i] = predictors[0].eq.tensions.tension_n
+    return SlackComparison((w_stamps[accepted] - t0_ns) * 1e-9, w_stamps[accepted],
+                           u[0, accepted], u[1, accepted], force[0, accepted],
+                           force[1, accepted], static[accepted])
