@@ -150,8 +150,8 @@ def test_shaper_command_prints_what_the_node_publishes(tmp_path):
     assert_allclose(doc['shaper']['amplitudes'], shaping.shaper.amplitudes)
     assert_allclose(doc['shaper']['notches'], shaping.notches)
     assert_allclose(doc['length_offsets_m'], length_offsets(eq))
-    assert doc['vibration_modes']['labels'][:4] == ['frequency_hz', 'damping_ratio',
-                                                     'platform_energy_fraction', 'kind']
+    labels = doc['vibration_modes']['labels']
+    assert labels[:4] == ['frequency_hz', 'damping_ratio', 'platform_energy_fraction', 'kind']
     assert 'ei shaper for ' in out.stdout and out.stdout.count('  t = ') == 9
     bad = analyze('--shaper', 'zvd', '--shaper-modes', '0', '--duration', '0.01')
     assert bad.returncode == 1 and bad.stderr.count('\n') == 1, bad.stderr
