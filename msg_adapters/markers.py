@@ -1,4 +1,4 @@
-"""visualization_msgs/MarkerArray of the robot for RViz and Foxglove (SPEC section 5).
+"""visualization_msgs/MarkerArray of the robot for RViz and Foxglove (doc/node_interface.md).
 
 Namespaces and ids are stable from one message to the next, so each message replaces the
 last one's markers in place: ``cables`` (one LINE_STRIP per cable, id i), ``anchors`` (one

@@ -1,4 +1,4 @@
-"""The node's policy for input stamps: stamps never latch the node (SPEC section 5).
+"""The node's policy for input stamps: stamps never latch the node (doc/node_interface.md).
 
 One :class:`StampClock` per input stream (pose, wrench) decides what each stamp means, given the
 node's clock ``now`` (ns; ``None`` where there is none):

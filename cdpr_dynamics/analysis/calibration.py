@@ -501,7 +501,7 @@ def configured_ratios(settings: Settings, frequency_hz, model_hz) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FitResult:
-    """What :func:`fit` found; ``report`` is the JSON report (SPEC section 6)."""
+    """What :func:`fit` found; ``report`` is the JSON report."""
 
     flat: dict                      # the input parameters with the fitted values
     values: dict                    # {parameter: (value, std per component or None)}

@@ -1,12 +1,12 @@
 """Settings of a CDPR analysis: one table of parameters, read from ROS 2 YAML or a flat dict.
 
-The parameter names are the ROS parameter names of SPEC section 3 (dotted, flat arrays where
+The parameter names are the ROS parameter names of doc/configuration.md (dotted, flat arrays where
 ROS needs them). :data:`PARAMETERS` is the single source of names, defaults, units, ranges and
 descriptions: the node declares its ROS parameters from it and the offline tools parse YAML
 files through it, so both read the same file the same way.
 
-Configuration is strict (SPEC section 3): a name not in the table is an error naming the closest
-known name; the robot's physical description (parameters whose default is ``None``) has no
+Configuration is strict (doc/configuration.md): a name not in the table is an error naming the
+closest known name; the robot's physical description (parameters whose default is ``None``) has no
 defaults; numerical settings keep theirs. Files are read defensively (:func:`read_params_file`):
 at most :data:`MAX_CONFIG_BYTES`, strict UTF-8, no YAML anchors or aliases, nesting at most
 :data:`MAX_CONFIG_DEPTH`, at most :data:`MAX_CONFIG_SCALARS` values, no duplicate keys; every
@@ -559,7 +559,7 @@ def _check_settings(s: Settings) -> None:
 def settings_from_params(flat: dict) -> Settings:
     """Validated :class:`Settings` from flat dotted parameters.
 
-    Strict (SPEC section 3): an unknown name is an error (:func:`check_names`); the robot's
+    Strict (doc/configuration.md): an unknown name is an error (:func:`check_names`); the robot's
     physical description must be given (``robot.inertia_kg_m2`` only for a rigid platform);
     numerical settings missing take their defaults. Checked in table order."""
     check_names(flat)

@@ -1,5 +1,5 @@
 """What a controller takes from the prediction: the modes as numbers, input shapers and notch
-filters for the lowest platform modes, and the cables' length offsets (SPEC section 5:
+filters for the lowest platform modes, and the cables' length offsets (doc/node_interface.md:
 ``vibration_modes``, ``input_shaper``, ``notch_filter``, ``cable_length_offsets``).
 
 * :func:`mode_table`: a row per mode up to ``frf.f_max_hz``: :data:`MODE_COLUMNS`, then the

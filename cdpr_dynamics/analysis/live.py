@@ -100,7 +100,7 @@ class PoseStatics:
 
 @dataclass(frozen=True, eq=False)
 class Prediction:
-    """The predicted state of a point of the platform (SPEC section 5).
+    """The predicted state of a point of the platform (doc/node_interface.md).
 
     ``displacement_m`` (3,): its displacement from equilibrium, u + theta x R b;
     ``position_m`` (3,): its predicted position p + R b + displacement; ``quaternion`` (4,)

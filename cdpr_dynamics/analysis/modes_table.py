@@ -1,4 +1,4 @@
-"""The measured modes table of ``cdpr_calibrate`` (SPEC section 6): CSV, ``#`` lines comments.
+"""The measured modes table of ``cdpr_calibrate`` : CSV, ``#`` lines comments.
 
 One row per mode: ``pose_id``, the platform frame's pose ``x_m y_m z_m qx qy qz qw`` in
 ``robot.frame_id``, ``frequency_hz`` and optionally ``std_hz``, ``damping_ratio``,

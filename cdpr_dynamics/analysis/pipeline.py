@@ -145,7 +145,7 @@ def balance_warnings(held: Balance | None) -> tuple[str, ...]:
 
 
 def equilibrium_summary(settings: Settings, eq: Equilibrium) -> dict:
-    """The JSON ``equilibrium`` block (SPEC section 6): residuals and per-cable statics."""
+    """The JSON ``equilibrium`` block of ``cdpr_analyze``: residuals and per-cable statics."""
     residual = np.asarray(eq.residual, dtype=float)
     weight = float(np.linalg.norm(required_wrench(settings.robot, settings.external_force_n,
                                                   settings.external_moment_nm)[:3]))
@@ -348,7 +348,7 @@ def system_modes(settings: Settings, system: PlatformSystem, shapes: bool = Fals
 
 
 def frf_arrays(settings: Settings, system: PlatformSystem, found=None) -> dict:
-    """The FRF arrays of the service contract (SPEC section 5) for the settings' sweep.
+    """The FRF arrays of the service contract (doc/node_interface.md) for the settings' sweep.
 
     Amplitudes and phases are those of ``frf.point_m`` (u + theta x R b); rotations (6-DOF
     platforms) of the platform; a name whose array cannot exist maps to its reason (str).

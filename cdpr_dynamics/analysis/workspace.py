@@ -9,8 +9,8 @@ statics :func:`~cdpr_dynamics.analysis.pipeline.equilibrium`, ``auto``'s
 (:func:`~cdpr_dynamics.analysis.pipeline.equilibrium_for`),
 :func:`~cdpr_dynamics.analysis.pipeline.build_system`,
 the configured damping and :func:`~cdpr_dynamics.dynamics.system.frequency_response` over the
-``frf.*`` sweep, the modes classified by :func:`cdpr_dynamics.dynamics.modes.modes`. Columns (SPEC
-section 6):
+``frf.*`` sweep, the modes classified by :func:`cdpr_dynamics.dynamics.modes.modes`. Columns
+(doc/tools/cdpr_workspace.md):
 
 * ``tensions_n`` (N, at the model's statics) and ``tension_margin_n``: how much more load
   the cables could hold with tensions in [T_min, T_max], the smallest slack of the
@@ -75,7 +75,7 @@ from cdpr_dynamics.selection.auto import choose_model
 
 STATUSES = ('ok', 'outside', 'rank_deficient', 'crossing', 'infeasible', 'unstable',
             'method_invalid', 'error', 'failed')
-#: The SPEC section 6 columns, then what the row was computed with.
+#: The doc/tools/cdpr_workspace.md columns, then what the row was computed with.
 COLUMNS = ('x_m', 'y_m', 'z_m', 'qx', 'qy', 'qz', 'qw', 'status', 'reason', 'tensions_n',
            'tension_margin_n', 'structure_matrix_condition', 'max_sag_parameter',
            'lowest_platform_hz', 'platform_modes_hz', 'first_cable_mode_hz',

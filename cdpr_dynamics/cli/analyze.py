@@ -6,7 +6,8 @@
                  [--plot-direction {x,y,z,rx,ry,rz}] [--position X Y Z]
                  [--shaper {none,zv,zvd,ei} [--shaper-modes N] [--notch-sample-rate HZ]]
 
-Writes the JSON of SPEC section 6 (for the first method; every method under ``methods``) and
+Writes the JSON of doc/tools/cdpr_analyze.md (for the first method; every method under
+``methods``) and
 PNG plots (:mod:`cdpr_dynamics.analysis.figures`): the FRF along ``--plot-direction`` (one line per
 method) and the time histories of every method, the geometry and the mode shapes of the first.
 Errors end with one line naming the cause and exit status 1.
@@ -41,7 +42,7 @@ from cdpr_dynamics.dynamics.slack import peak_displacement
 def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration_s: float,
                    progress=None, slack_aware: bool = False,
                    controller: dict | None = None) -> dict:
-    """The SPEC section 6 JSON document of one method at equilibrium ``eq``.
+    """The JSON document of one method at equilibrium ``eq``.
 
     ``slack_aware`` adds to each time history the slack-aware one (cables carry no
     compression, :mod:`cdpr_dynamics.dynamics.slack`) under ``slack_aware``; ``controller``
@@ -162,7 +163,7 @@ def _finite(values: np.ndarray):
 
 
 def mode_entries(found, freqs, damping) -> list[dict]:
-    """The JSON ``modes`` (SPEC section 6): per mode its frequency, kind, cable, platform
+    """The JSON ``modes``: per mode its frequency, kind, cable, platform
     energy fraction, effective mass per platform DOF (kg, kg m^2) and damping ratio;
     ``found`` None (dsm): frequency and damping ratio only, the rest null."""
     ratios = damping.ratios(freqs)

@@ -5,7 +5,7 @@
     cdpr_calibrate fit --config ROBOT.yaml --measurements MODES.csv --fit NAME [NAME ...]
                        --output CALIBRATED.yaml [--holdout FRACTION] [--report DIR]
 
-``identify`` writes the modes table (SPEC section 6) of every free decay at rest it finds,
+``identify`` writes the modes table of every free decay at rest it finds,
 and says on stderr (and in the table's comments) what it skipped and why. ``fit`` writes the
 config with the fitted values (a comment with each one's standard uncertainty), and in
 ``--report DIR`` ``report.json``, ``frequencies.png`` (measured against predicted, before and

@@ -36,7 +36,7 @@ POLL_S = 0.005
 #: 0.3-0.8 ms here, the node's wait set rebuilt each time.
 SPIN_EVERY = 20
 
-# SPEC section 5: the node's inputs and outputs, and its FRF service (introspection events).
+# doc/node_interface.md: the node's inputs and outputs, and its FRF service (introspection events).
 DEFAULT_TOPICS = {
     'pose': 'geometry_msgs/msg/PoseStamped',
     'wrench': 'geometry_msgs/msg/WrenchStamped',

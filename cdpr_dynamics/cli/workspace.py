@@ -6,7 +6,8 @@
                    [--workers N] [--chunk-size K] [--retries R] [--resume]
                    [--maps-axis {x,y,z} ...] [--no-maps] [--skip-auto]
 
-Writes ``DIR/workspace.parquet`` (one row per pose and design variant, SPEC section 6; the
+Writes ``DIR/workspace.parquet`` (one row per pose and design variant, the
+columns of doc/tools/cdpr_workspace.md; the
 config, the varied values and the command in its metadata under ``cdpr_workspace``), PNG maps
 of slices (:mod:`cdpr_dynamics.analysis.workspace_maps`) and ``DIR/summary.md``.
 

@@ -28,20 +28,9 @@ each cable's interior nodes, :meth:`PlatformSystem.matrices`), mass normalised
   masses, fractions) are basis-free; a degenerate cable mode's ``cable`` is not.
 
 How they are found (the default, ``shapes=False``): by Wittrick-Williams counting
-(:mod:`cdpr_dynamics.dynamics.counting`), then at each frequency the modes follow from Z alone:
-* Z(lam_k) phi_p = 0 (its m eigenvectors nearest 0), the interior follows the platform
-  (phi_i = -D_ii^-1 D_ip phi_p, never formed), and the mode's mass is
-  phi^T M phi = -phi_p^T Z'(lam_k) phi_p (Z' by a complex step, exact to round-off); each
-  cable's share is -d^T S_c' d (d = G_c phi_p the attachment motion, S_c its end dynamic
-  stiffness), less its end node's d^T M_ee d and the coupling 2 d^T M_e,last X_c d
-  (X_c = O_c^-T (S_c - D_ee), O_c the last element's dynamic-stiffness block: the last
-  interior node's motion per unit end motion). M phi on the platform rows is
-  (M_pp + sum_c G_c^T M_e,last X_c G_c) phi_p: the effective masses.
-* where the interiors have an eigenvalue at lam_k (J0 jumps), clamped-chain modes whose end
-  forces cancel on the platform are modes with the platform at rest (fraction 0): the null
-  space of the coupling columns G_c^T O_c^T psi_c,last (psi_c each chain's clamped modes,
-  closed form for ``fem`` and ``dsm``, by inverse iteration of the banded chain otherwise),
-  each cable's share the sum of its columns' squared weights.
+(:mod:`cdpr_dynamics.dynamics.counting`), each mode's platform shape, mass, cable shares and
+effective masses then following from the condensed dynamic stiffness Z alone (the derivation:
+doc/theory.md, section "Classifying the modes from Z").
 
 A state where this bookkeeping does not add up (negative stiffness, a platform mode exactly at
 a clamped-chain frequency) falls back to the dense path. ``shapes=True`` (mode shapes of every
@@ -67,7 +56,7 @@ from cdpr_dynamics.dynamics.system import DENSE_EIGEN_DOFS, DynamicsError, Platf
 
 PLATFORM_SHARE = 0.5    # platform energy fraction at or above: kind 'platform'
 CABLE_SHARE = 0.1       # platform energy fraction at or below: kind 'cable'
-MIN_MODES = 12          # at least this many modes (SPEC section 6: "at least the 12 lowest")
+MIN_MODES = 12          # at least this many modes ("at least the 12 lowest")
 #: relative width (of omega) within which counted frequencies and clamped-chain eigenvalues
 #: are one repeated frequency: the pivots' round-off splits equal chains' eigenvalues by
 #: 2-3e-11 at fem_sag n = 64 (four symmetric cables), so 30x that

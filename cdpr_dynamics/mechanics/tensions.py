@@ -21,38 +21,12 @@ platform and 6 for a rigid one. The default weights C = I, c = 0 give the tensio
 (11): it is set up once, then only W^T and w are updated (``qp.update``) and each solve is
 warm-started from the previous solution, so a live node pays a few tens of microseconds per pose.
 
-Warm active set. Between nearby poses the set of tensions at their bounds rarely changes, and
-with that set known the QP is one linear solve. For a diagonal C = diag(h) (the default, and
-the sag statics' steps) let F be the free tensions and A the fixed ones, T_A at their bounds:
-
-    T_F = (W_F lambda - c_F) / h_F,
-    (W^T_F diag(1/h_F) W_F) lambda = w - W^T_A T_A + W^T_F (c_F / h_F)        (ndof x ndof),
-
-and the bound multipliers mu = h T + c - W lambda (mu_i >= 0 at a lower bound, <= 0 at an upper
-one, 0 where free). When T_F lies in the box and the multipliers have their signs, T meets the
-KKT conditions of this convex QP: it is the optimum (exactly, not to a solver tolerance).
-Otherwise the set is updated as the primal-dual active-set method does (lower where
-T_i - mu_i < T_min, upper where T_i - mu_i > T_max) for at most ``ACTIVE_SET_ROUNDS`` rounds,
-then proxsuite decides. The set starts from the previous answer (the tensions at a bound); a
-solver without a previous answer, or with ``warm_start=False``, goes straight to proxsuite.
-
-Infeasibility is never taken on the solver's word alone. Before the QP a cheap necessary test
-compares each wrench component with the range the box can produce (below); after it the returned
-T is checked against (11) and (12) within ``tolerance_n``. proxsuite certifies a grossly
-infeasible QP in a few iterations but may iterate for seconds on a mildly infeasible one, so its
-iterations are capped (``max_iter``; feasible problems need up to ~16 cold, 2-3 warm). When the QP
-fails, a second, always feasible QP (:func:`closest_tensions`) finds the tensions in the box that
-come closest to w,
-
-    minimise 1/2 |W^T T - w|^2  subject to  T_min <= T_i <= T_max,
-
-whose residual says whether w is out of reach (status ``'infeasible'``, with these closest
-tensions as the best effort) or the QP merely stopped early (one cold retry with 4x the
-iterations, then ``'max_iter'``). A failure costs about 0.1-2 ms; a success pays nothing for it.
-
-Range of one wrench component j over the box (exact per row, necessary for the whole wrench):
-
-    |w_j - (T_min + T_max)/2 sum_i W^T_ji| <= (T_max - T_min)/2 sum_i |W^T_ji|.
+Between nearby poses the QP is answered from the previous pose's active set (one
+ndof x ndof linear solve, KKT-checked: exact where it holds; proxsuite decides otherwise), and
+infeasibility is never taken on the solver's word alone: a per-component reachability test,
+a check of the returned T against (11) and (12) within ``tolerance_n``, and the box tensions
+closest to w (:func:`closest_tensions`) when the QP fails. The derivations: doc/theory.md,
+section "Cable tensions".
 """
 from __future__ import annotations
 

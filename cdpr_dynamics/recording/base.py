@@ -1,6 +1,7 @@
 """What every recording module shares: errors, records read back, type names, the MCAP writer.
 
-Files are rosbag2-compatible (SPEC section 7): profile ``ros2``, ``ros2msg`` schemas built from
+Files are rosbag2-compatible (doc/tools/cdpr_record.md): profile ``ros2``, ``ros2msg`` schemas
+built from
 the installed ``.msg`` files, ``cdr`` channels with rosbag2's channel metadata, indexed chunks.
 :func:`mcap_writer` makes the ``mcap`` writer with those settings for the recorder
 (:mod:`~cdpr_dynamics.recording.recorder`) and the file writer
