@@ -175,7 +175,7 @@ def test_geometrico_static_equilibrium_is_the_constrained_energy_minimum(
 def test_a_pose_that_balances_is_kept_and_reported_so():
     robot = _suspended_3()
     held = geometrico_static(robot, [0.1, 0.05, 1.0])
-    again = balance(robot, held.geometry, EA, 1.0, 1000.0)
+    again = balance(robot, held.geometry, 1.0, 1000.0)
     assert not again.moved and again.distance_m == 0.0
     assert_allclose(again.tension_n, held.tension_n, rtol=1e-8)
 
@@ -186,7 +186,7 @@ def test_slack_cable_at_the_equilibrium_is_refused_naming_it():
     robot = Robot('world', np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0]]), np.zeros((2, 3)), 5.0,
                   np.zeros((3, 3)), GRAVITY)
     with pytest.raises(UnderactuatedError, match=r'cable (0|1) is slack \(tension -'):
-        balance(robot, geometry(robot, [3.0, 0.0, 1.9]), EA, 1.0, 1000.0)
+        balance(robot, geometry(robot, [3.0, 0.0, 1.9]), 1.0, 1000.0)
     # a V at 45 degrees: each cable holds m g / (2 sin 45) = 34.68 N
     s = settings_of([[-1.0, 0.0, 2.0], [1.0, 0.0, 2.0]], position=(0.0, 0.0, 1.0),
                     mass_kg=5.0, inertia=(0.0,) * 6, **{'tension.min_n': 100.0})
@@ -264,3 +264,18 @@ def test_cdpr_analyze_on_a_suspended_underactuated_robot(tmp_path):
     assert block['moved'] and 0.01 < block['distance_m'] < 0.1
     assert any('not an equilibrium' in w for w in doc['warnings'])
     assert doc['platform_natural_frequencies_hz'][0] == pytest.approx(0.72, abs=0.02)
+
+
+def test_loaded_stiffness_is_the_spring_models_static_stiffness():
+    """Two computations of the stiffness at a geometrico-static equilibrium: the module's
+    closed form and the spring model assembled by the dynamics layer."""
+    from cdpr_dynamics import models
+    from cdpr_dynamics.dynamics.system import platform_system
+    from cdpr_dynamics.models.base import CableSet
+    robot = _suspended_4()
+    held = geometrico_static(robot, [-0.3, 0.2, 1.4], quaternion_to_matrix([0.05, -0.03, 0.1, 1]))
+    geo = held.geometry
+    cables = CableSet(geo.chord_m, held.tension_n, EA, 0.0, GRAVITY)
+    spring = platform_system(robot, geo, models.build('spring', cables)).static_stiffness()
+    ours = loaded_stiffness(robot, geo, held.tension_n, EA)
+    assert_allclose(ours, spring, rtol=0, atol=1e-9 * np.abs(spring).max())

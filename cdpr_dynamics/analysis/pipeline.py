@@ -25,7 +25,7 @@ from cdpr_dynamics.selection.auto import choose_model
 from cdpr_dynamics.mechanics.statics import Equilibrium, StaticsError, equilibrium_for
 from cdpr_dynamics.mechanics.tensions import TensionResult, TensionSolver
 from cdpr_dynamics.mechanics.underactuated import (Balance, UnderactuatedError, balance,
-                                                   is_underactuated)
+                                                   is_underactuated, unstable_direction)
 
 HEAVY_DAMPING_RATIO = 1.0
 
@@ -114,6 +114,11 @@ def equilibrium(settings: Settings, position_m=None, rotation=None,
     chord = Equilibrium(geo, result, cables, 'chord', result.tension_n[:, None] * geo.unit,
                         geo.length_m * ea / (ea + result.tension_n),
                         residual, result.iterations, balance_warnings(held), balance=held)
+    if held is not None:        # gravity and the cables hold the free directions?
+        spring = platform_system(settings.robot, geo, models.build('spring', cables))
+        reason = unstable_direction(spring.static_stiffness())
+        if reason:
+            raise AnalysisError(reason)
     try:
         return equilibrium_for(settings, chord, method, start)
     except StaticsError as exc:
@@ -124,9 +129,8 @@ def _underactuated_balance(settings: Settings, geo: Geometry) -> Balance:
     """:func:`cdpr_dynamics.mechanics.underactuated.balance` for ``settings``' robot, its
     refusals as AnalysisError; the equilibrium's geometry checked as the given pose's is."""
     try:
-        held = balance(settings.robot, geo, settings.cable.ea_n, settings.tension_min_n,
-                       settings.tension_max_n, settings.external_force_n,
-                       settings.external_moment_nm)
+        held = balance(settings.robot, geo, settings.tension_min_n, settings.tension_max_n,
+                       settings.external_force_n, settings.external_moment_nm)
     except (UnderactuatedError, GeometryError) as exc:
         raise AnalysisError(str(exc)) from None
     if held.moved:

@@ -21,8 +21,9 @@ holds only at poses where gravity and the static load fall in that range. Here:
   stiffness of rigid cables (:func:`loaded_stiffness` without the axial term), and a
   backtracking line search on U; a reduced Hessian that is not positive definite is shifted so
   that every step goes downhill.
-* :func:`unstable_direction`: the full stiffness (:func:`loaded_stiffness`, axial included)
-  must be positive definite; the direction where it is not is named.
+* :func:`unstable_direction`: the full stiffness (the cables' axial and geometric stiffness and
+  gravity's load stiffness: :func:`loaded_stiffness` with the axial term, or a model's static
+  stiffness) must be positive definite; the direction where it is not is named.
 
 Platform DOFs q = (u, theta): translation of the reference point and small rotation about it
 (world frame), as in :mod:`cdpr_dynamics.dynamics.system`. The loaded stiffness is
@@ -106,13 +107,15 @@ def required_wrench_at(robot: Robot, rotation: np.ndarray, external_force_n=(0.0
 
 
 def balance_tensions(structure_matrix: np.ndarray, wrench: np.ndarray):
-    """(T (n,), residual (d,)): the least-squares tensions of W^T T = w and W^T T - w."""
-    tension = np.linalg.lstsq(structure_matrix, wrench, rcond=None)[0]
+    """(T (n,), residual (d,)): the least-squares tensions of W^T T = w (W^T of full column
+    rank: the normal equations) and W^T T - w."""
+    tension = np.linalg.solve(structure_matrix.T @ structure_matrix,
+                              structure_matrix.T @ wrench)
     return tension, structure_matrix @ tension - wrench
 
 
 def loaded_stiffness(robot: Robot, geo: Geometry, tension_n: np.ndarray,
-                     ea_n: float | None) -> np.ndarray:
+                     ea_n: float | None = None) -> np.ndarray:
     """(d, d) stiffness of the platform on its cables and gravity (module docstring);
     ``ea_n`` None: inextensible cables (no axial term: the geometric and load stiffness)."""
     unit, length = geo.unit, geo.length_m
@@ -185,7 +188,7 @@ def _restore(robot: Robot, pose: _Pose, lengths_m: np.ndarray) -> _Pose | None:
         if np.all(np.abs(miss) <= RESTORE_RTOL * lengths_m):
             return pose
         wt = pose.geo.structure_matrix                # dL/dq = -W: W dq = miss
-        step = wt @ np.linalg.lstsq(wt.T @ wt, miss, rcond=None)[0]
+        step = wt @ np.linalg.solve(wt.T @ wt, miss)
         try:
             pose = pose.moved(robot, step)
         except GeometryError:
@@ -232,9 +235,7 @@ def geometrico_static(robot: Robot, position_m, rotation=None,
         geo = pose.geo
         wrench = required_wrench_at(robot, pose.rotation, force, moment)
         tension, residual = balance_tensions(geo.structure_matrix, wrench)
-        u_full = np.linalg.svd(geo.structure_matrix)[0]
-        rank = int(np.linalg.matrix_rank(geo.structure_matrix))
-        free = u_full[:, rank:]                         # directions keeping every length
+        free = np.linalg.svd(geo.structure_matrix)[0][:, robot.n_cables:]   # lengths kept
         reduced = free.T @ residual
         if np.all(np.abs(free @ reduced) <= SOLVE_RTOL * _scale(robot, geo, wrench)):
             break
@@ -243,7 +244,7 @@ def geometrico_static(robot: Robot, position_m, rotation=None,
                 f'the geometrico-static solve did not converge in {MAX_ITERATIONS} iterations '
                 f'(net wrench {np.round(residual, 6).tolist()} left)')
         iterations += 1
-        hessian = free.T @ loaded_stiffness(robot, geo, tension, None) @ free
+        hessian = free.T @ loaded_stiffness(robot, geo, tension) @ free
         values, vectors = np.linalg.eigh(hessian)
         floor = 1e-8 * max(float(np.abs(values).max()), 1e-12)
         values = np.maximum(np.abs(values), floor)      # downhill along every eigenvector
@@ -270,12 +271,12 @@ def geometrico_static(robot: Robot, position_m, rotation=None,
                    float(np.linalg.norm(pose.position - start.position)), angle, iterations)
 
 
-def balance(robot: Robot, geo: Geometry, ea_n: float, tension_min_n: float,
-            tension_max_n: float, external_force_n=(0.0, 0.0, 0.0),
-            external_moment_nm=(0.0, 0.0, 0.0)) -> Balance:
+def balance(robot: Robot, geo: Geometry, tension_min_n: float, tension_max_n: float,
+            external_force_n=(0.0, 0.0, 0.0), external_moment_nm=(0.0, 0.0, 0.0)) -> Balance:
     """The equilibrium of an underactuated robot for the pose of ``geo``: that pose where it
-    balances, else :func:`geometrico_static`'s; checked for slack, the tension bound and
-    stability (raises :class:`UnderactuatedError` naming the cable or the direction)."""
+    balances, else :func:`geometrico_static`'s; checked for slack and the tension bound
+    (raises :class:`UnderactuatedError` naming the cable). Its stability is the caller's
+    check, on the stiffness of its model (:func:`unstable_direction`)."""
     wrench = required_wrench_at(robot, geo.rotation, external_force_n, external_moment_nm)
     tension, residual = balance_tensions(geo.structure_matrix, wrench)
     if np.all(np.abs(residual) <= BALANCE_RTOL * _scale(robot, geo, wrench)):
@@ -295,9 +296,6 @@ def balance(robot: Robot, geo: Geometry, ea_n: float, tension_min_n: float,
         raise UnderactuatedError(f'infeasible tension distribution: cable {high} needs '
                                  f'{found.tension_n[high]:.4g} N > tension.max_n '
                                  f'{tension_max_n:g} N to hold the platform')
-    reason = unstable_direction(loaded_stiffness(robot, found.geometry, found.tension_n, ea_n))
-    if reason:
-        raise UnderactuatedError(reason)
     return found
 
 
