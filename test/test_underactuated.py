@@ -279,3 +279,21 @@ def test_loaded_stiffness_is_the_spring_models_static_stiffness():
     spring = platform_system(robot, geo, models.build('spring', cables)).static_stiffness()
     ours = loaded_stiffness(robot, geo, held.tension_n, EA)
     assert_allclose(ours, spring, rtol=0, atol=1e-9 * np.abs(spring).max())
+
+
+@pytest.mark.parametrize('name', ['suspended_3cable', 'suspended_4cable'])
+def test_shipped_suspended_robots_hang_at_their_initial_pose(name):
+    """Symmetric, so their initial pose is an equilibrium (no solve, no warning); the lowest
+    modes are the sways gravity holds (0.4-4 Hz), the same in every model to 1 %."""
+    from cdpr_dynamics.analysis.config import load_settings
+    settings = load_settings(REPO / 'config' / f'{name}.yaml')
+    lowest_two = []
+    for method in ('spring', 'fem', 'fem_sag', 'dsm'):
+        s = settings.replace(method=method)
+        eq = equilibrium(s, method=method)
+        assert not eq.balance.moved and not any('equilibrium' in w for w in eq.warnings)
+        platform = system_modes(s, build_system(s, eq)).platform_hz
+        lowest_two.append(platform[:2])
+    lowest_two = np.array(lowest_two)
+    assert np.all((lowest_two > 0.4) & (lowest_two < 4.0))
+    assert_allclose(lowest_two, np.broadcast_to(lowest_two[0], lowest_two.shape), rtol=0.01)

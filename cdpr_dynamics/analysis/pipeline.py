@@ -140,8 +140,8 @@ def _underactuated_balance(settings: Settings, geo: Geometry) -> Balance:
 
 def balance_warnings(held: Balance | None) -> tuple[str, ...]:
     """The warning that the pose was not an equilibrium of the underactuated robot, with the
-    distance to the one analysed."""
-    if held is None or not held.moved:
+    distance to the one analysed (not where it is within 0.1 mm and 0.1 mrad)."""
+    if held is None or not held.far:
         return ()
     return (f'underactuated: the pose is not an equilibrium; analysed at the equilibrium with '
             f'its cable lengths, {np.round(held.geometry.position_m, 4).tolist()} m, '

@@ -56,6 +56,7 @@ MAX_ITERATIONS = 60
 PROBE_ITERATIONS, PROBE_HALVINGS = 12, 6   # existence probes of lowest_tension
 FEASIBLE_HALVINGS = 8       # from a balanced state, at most this many halvings of a step
 OPTIMALITY_RTOL = 1e-6     # converged when the QP moves no tension by more than this x T_max
+UNREACHED_RTOL = 1e-6      # warned: n < d sagged cables leave more than this x the weight
 
 
 class StaticsError(ValueError):
@@ -224,7 +225,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
             step = proposal.tension_n - tension
         if size <= 1.0 and _max(np.abs(step)) <= step_tol:
             return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
-                              tuple(warnings) + _unreached(residual, tol), qp)
+                              tuple(warnings) + _unreached(residual, tol / rtol), qp)
         alpha = 1.0
         for _ in range(30 if size > 1.0 else FEASIBLE_HALVINGS):
             trial = _clip(tension + alpha * step, lower, t_max_n)
@@ -261,7 +262,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
                         f'{np.abs(residual[:3]).max():.2g} N) but the SQP did not settle on the '
                         f'least-norm distribution in {iterations} iterations{cause}')
         return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
-                          tuple(warnings) + _unreached(residual, tol), qp)
+                          tuple(warnings) + _unreached(residual, tol / rtol), qp)
     raise StaticsError(f'no sag-consistent tension distribution: the SQP did not converge in '
                        f'{iterations} iterations (residual {WRENCH_AXES[worst]} '
                        f'{reached[worst]:.3g}){cause}')
@@ -274,9 +275,10 @@ def _range_projector(a_mat: np.ndarray) -> np.ndarray:
     return basis @ basis.T
 
 
-def _unreached(residual: np.ndarray, tol: np.ndarray) -> tuple[str, ...]:
-    """The warning on the net wrench fewer cables than DOFs leave, where above ``tol``."""
-    if np.all(np.abs(residual) <= tol):
+def _unreached(residual: np.ndarray, scale: np.ndarray) -> tuple[str, ...]:
+    """The warning on the net wrench fewer cables than DOFs leave, where above
+    ``UNREACHED_RTOL`` of ``scale`` (the weight, and the weight times the largest arm)."""
+    if np.all(np.abs(residual) <= UNREACHED_RTOL * scale):
         return ()
     force = float(np.linalg.norm(residual[:3]))
     moment = float(np.linalg.norm(residual[3:])) if residual.size > 3 else 0.0

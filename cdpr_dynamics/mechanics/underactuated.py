@@ -52,6 +52,9 @@ MAX_ITERATIONS = 100
 MAX_HALVINGS = 30
 RESTORE_ITERATIONS = 20
 RESTORE_RTOL = 1e-13      # lengths kept to this fraction of each length
+#: a pose this close to its equilibrium (m, rad) is taken without a warning (the JSON still
+#: reports the distance)
+CLOSE_M, CLOSE_RAD = 1e-4, 1e-4
 #: the full stiffness is positive definite where its Jacobi-scaled eigenvalues all exceed this
 STABILITY_RTOL = 1e-9
 
@@ -80,6 +83,11 @@ class Balance:
     @property
     def moved(self) -> bool:
         return self.iterations > 0
+
+    @property
+    def far(self) -> bool:
+        """Further from the given pose than :data:`CLOSE_M` or :data:`CLOSE_RAD`."""
+        return self.distance_m > CLOSE_M or self.angle_rad > CLOSE_RAD
 
 
 def is_underactuated(robot: Robot) -> bool:
