@@ -3,7 +3,9 @@
 Namespaces and ids are stable from one message to the next, so each message replaces the
 last one's markers in place: ``cables`` (one LINE_STRIP per cable, id i), ``anchors`` (one
 SPHERE_LIST, id 0), ``platform`` (a CUBE for a rigid platform, a SPHERE for a point mass,
-id 0), ``displacement`` (an ARROW, id 0). Every marker: ``frame_locked = True``, lifetime 0
+id 0), ``displacement`` (an ARROW, id 0), and for a robot with pulleys ``pulleys`` (a
+LINE_LIST of every pulley's groove circle, id 0; each cable's line then runs on through its
+wrap to the anchor D_i). Every marker: ``frame_locked = True``, lifetime 0
 (kept until replaced), in the robot's frame.
 """
 from __future__ import annotations
@@ -23,7 +25,8 @@ ANCHOR_DIAMETER_M = 0.05
 POINT_MASS_DIAMETER_M = 0.1
 ARROW_SHAFT_M = 0.01
 THIN_PLATFORM_M = 0.02        # the box's side along an axis the attachments do not span
-NAMESPACES = ('cables', 'anchors', 'platform', 'displacement')
+PULLEY_SEGMENTS = 24          # straight pieces of a drawn groove circle
+NAMESPACES = ('cables', 'anchors', 'platform', 'displacement', 'pulleys')
 
 
 @dataclass(frozen=True)
@@ -31,7 +34,8 @@ class RobotShape:
     """What the markers draw, world frame (m): ``cable_points_m`` (n, s, 3) each cable from
     its platform end to its anchor, ``tension_n`` (n,), ``anchor_m`` (n, 3),
     ``position_m`` (3,) and ``quaternion`` (4,) qx qy qz qw of the platform, ``size_m`` (3,)
-    of its box in the platform frame or None for a point mass."""
+    of its box in the platform frame or None for a point mass; ``pulley_circles_m``
+    (p, PULLEY_SEGMENTS + 1, 3) the groove circles of the robot's pulleys or None."""
 
     cable_points_m: np.ndarray
     tension_n: np.ndarray
@@ -39,26 +43,52 @@ class RobotShape:
     position_m: np.ndarray
     quaternion: np.ndarray
     size_m: np.ndarray | None
+    pulley_circles_m: np.ndarray | None = None
 
 
-def robot_shape(eq, samples: int = 33) -> RobotShape:
+def _pulley_drawing(geo, robot, samples: int):
+    """(wrap arcs (n, samples, 3) from each exit point back to its anchor D_i, groove circles
+    (p, PULLEY_SEGMENTS + 1, 3) of the pulleys) at ``geo``."""
+    pulleys = geo.pulleys
+    centre, exit_m = pulleys.center_m, pulleys.exit_m
+    radius = robot.pulley_radii_m[:, None, None]
+    k = robot.pulley_axes[:, None, :]
+    e = np.zeros_like(centre)
+    i = robot.pulley_index
+    e[i] = (centre[i] - robot.anchors_m[i]) / robot.pulley_radii_m[i, None]
+    e = e[:, None, :]
+    angle = pulleys.wrap_rad[:, None] * np.linspace(1.0, 0.0, samples)[None, :]
+    arcs = centre[:, None, :] + radius * (np.sin(angle)[..., None] * k
+                                          - np.cos(angle)[..., None] * e)
+    arcs[:, 0] = exit_m
+    turn = np.linspace(0.0, 2.0 * np.pi, PULLEY_SEGMENTS + 1)[None, :, None]
+    circles = centre[:, None, :] + radius * (np.sin(turn) * k - np.cos(turn) * e)
+    return arcs, circles[i]
+
+
+def robot_shape(eq, samples: int = 33, robot=None) -> RobotShape:
     """The :class:`RobotShape` of an equilibrium: cables along
     :func:`cdpr_dynamics.analysis.pipeline.cable_shapes` (the catenary of a sag equilibrium, the
-    chord
-    otherwise) shifted by the attachments p + R b_i; the box spans the attachments' extent
-    max_i b_i - min_i b_i (platform frame; ``THIN_PLATFORM_M`` where that is 0)."""
+    chord otherwise) shifted by the attachments p + R b_i, and where ``robot`` has pulleys on
+    through each wrap to the anchor; the box spans the attachments' extent max_i b_i - min_i
+    b_i (platform frame; ``THIN_PLATFORM_M`` where that is 0)."""
     from cdpr_dynamics.analysis.pipeline import cable_shapes
     from cdpr_dynamics.analysis.live import rotated_quaternion
     geo = eq.geometry
     attachment = geo.position_m + geo.lever_m
     points = cable_shapes(eq, samples) + attachment[:, None, :]
+    circles, anchors = None, attachment + geo.chord_m
+    if geo.pulleys is not None and robot is not None:
+        arcs, circles = _pulley_drawing(geo, robot, max(samples // 4, 2))
+        points = np.concatenate([points, arcs[:, 1:]], axis=1)
+        anchors = robot.anchors_m
     size = None
     if geo.structure_matrix.shape[0] == 6:
         local = geo.lever_m @ geo.rotation          # b_i = R^T r_i, rows
         size = np.maximum(local.max(axis=0) - local.min(axis=0), THIN_PLATFORM_M)
-    return RobotShape(points, np.asarray(eq.tensions.tension_n, dtype=float),
-                      attachment + geo.chord_m, np.asarray(geo.position_m, dtype=float),
-                      rotated_quaternion(geo.rotation, np.zeros(3)), size)
+    return RobotShape(points, np.asarray(eq.tensions.tension_n, dtype=float), anchors,
+                      np.asarray(geo.position_m, dtype=float),
+                      rotated_quaternion(geo.rotation, np.zeros(3)), size, circles)
 
 
 def tension_colours(tension_n, min_n: float, max_n: float) -> np.ndarray:
@@ -122,6 +152,13 @@ def markers_message(shape: RobotShape, tension_min_n: float, tension_max_n: floa
     m.scale.x, m.scale.y, m.scale.z = ARROW_SHAFT_M, 2 * ARROW_SHAFT_M, 2 * ARROW_SHAFT_M
     m.color = ColorRGBA(r=0.1, g=0.8, b=0.1, a=1.0)
     out.markers.append(m)
+    if shape.pulley_circles_m is not None:
+        m = _marker('pulleys', Marker.LINE_LIST, frame_id, stamp)
+        m.scale.x = CABLE_WIDTH_M / 2
+        ends = np.stack([shape.pulley_circles_m[:, :-1], shape.pulley_circles_m[:, 1:]], axis=2)
+        m.points = _points(ends.reshape(-1, 3))
+        m.color = ColorRGBA(r=0.2, g=0.2, b=0.2, a=1.0)
+        out.markers.append(m)
     return out
 
 
@@ -140,7 +177,8 @@ def update_arrow(array: MarkerArray, displacement_m, scale: float, stamp) -> Mar
 def equilibrium_markers(settings, eq, displacement_m=(0.0, 0.0, 0.0), scale: float = 100.0,
                         stamp=None) -> MarkerArray:
     """:func:`markers_message` of an equilibrium with the settings' tension bounds and frame."""
-    return markers_message(robot_shape(eq), settings.tension_min_n, settings.tension_max_n,
+    return markers_message(robot_shape(eq, robot=settings.robot), settings.tension_min_n,
+                           settings.tension_max_n,
                            displacement_m, scale, settings.robot.frame_id, stamp)
 
 
@@ -172,6 +210,9 @@ def plot_markers(array: MarkerArray, path, title: str = '', tension_range_n=None
         colour = (m.color.r, m.color.g, m.color.b)
         if m.type == Marker.LINE_STRIP:
             ax.plot(*xyz.T, color=colour, linewidth=2)
+        elif m.type == Marker.LINE_LIST:
+            for segment in xyz.reshape(-1, 2, 3):
+                ax.plot(*segment.T, color=colour, linewidth=1)
         elif m.type == Marker.SPHERE_LIST:
             ax.scatter(*xyz.T, color='k', s=30, label='anchors')
         elif m.type == Marker.CUBE:

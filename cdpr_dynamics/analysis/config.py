@@ -69,9 +69,16 @@ PARAMETERS: tuple[Param, ...] = (
     Param('robot.attachments', [], 'attachment points b_i in the platform frame, x y z per '
           'cable (m); all zero for a point-mass end-effector', length=0),
     Param('robot.mass_kg', None, 'end-effector mass (kg)', 1e-9, 1e9, kind=float),
-    Param('robot.inertia_kg_m2', None, 'inertia about the centroid in the platform frame: '
-          'Ixx Iyy Izz Ixy Ixz Iyz (kg m^2); required for a rigid platform', length=6,
+    Param('robot.inertia_kg_m2', None, 'inertia about the centre of mass in the platform '
+          'frame: Ixx Iyy Izz Ixy Ixz Iyz (kg m^2); required for a rigid platform', length=6,
           kind=list),
+    Param('robot.center_of_mass_m', [0.0, 0.0, 0.0], 'centre of mass in the platform frame '
+          '(m); the frame origin is the reference point of poses and outputs', length=3),
+    Param('robot.pulley_axes', [], 'per cable the swivel axis k_i of its pulley, x y z, along '
+          'the cable from the winch into the pulley; zero: a fixed eyelet (empty: no pulleys)',
+          length=0),
+    Param('robot.pulley_radii_m', [], 'per cable the pulley radius r_i (m); the anchor is then '
+          'where the cable from the winch meets the groove (empty: no pulleys)', kind=list),
     Param('robot.gravity', [0.0, 0.0, -9.81], 'gravity vector in robot.frame_id (m/s^2)',
           length=3),
     Param('robot.initial_position', None, 'platform position of offline analyses and '
@@ -86,6 +93,8 @@ PARAMETERS: tuple[Param, ...] = (
     Param('cable.youngs_modulus_pa', None, "cable Young's modulus (Pa)", 1.0, 1e13, kind=float),
     Param('cable.weight_per_length_n_per_m', None, 'cable weight per unstrained length (N/m)',
           0.0, 1e6, kind=float),
+    Param('cable.winch_side_lengths_m', [], 'per cable the length between drum and anchor (m), '
+          'in series with the free span (empty: zero)', kind=list),
     Param('tension.min_n', None, 'lowest admissible cable tension (N)', 0.0, 1e9, kind=float),
     Param('tension.max_n', None, 'highest admissible cable tension (N)', 0.0, 1e9, kind=float),
     Param('model.method', 'fem', 'cable model: ' + ', '.join(METHODS), choices=METHODS),
@@ -575,15 +584,16 @@ def settings_from_params(flat: dict) -> Settings:
     if attachments.shape != anchors.shape:
         raise ConfigError(f'robot.attachments has {attachments.shape[0]} points but '
                           f'robot.anchors has {anchors.shape[0]}')
+    rigid = np.any(attachments) or np.any(v['robot.center_of_mass_m'])
     if v['robot.inertia_kg_m2'] is None:
-        if np.any(attachments):
+        if rigid:
             raise _missing('robot.inertia_kg_m2')
         v['robot.inertia_kg_m2'] = np.zeros(6)     # a point mass has no rotational inertia
     ixx, iyy, izz, ixy, ixz, iyz = v['robot.inertia_kg_m2']
     inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
-    if np.any(attachments) and np.any(np.linalg.eigvalsh(inertia) <= 0.0):
+    if rigid and np.any(np.linalg.eigvalsh(inertia) <= 0.0):
         raise ConfigError('robot.inertia_kg_m2 must be positive definite for a rigid platform '
-                          '(robot.attachments not all zero)')
+                          '(robot.attachments or robot.center_of_mass_m not all zero)')
     gravity = v['robot.gravity']
     g = float(np.linalg.norm(gravity))
     if g <= 0.0 and v['cable.weight_per_length_n_per_m'] > 0.0:
@@ -593,7 +603,8 @@ def settings_from_params(flat: dict) -> Settings:
         raise ConfigError(f'robot.initial_orientation is not a unit quaternion (norm '
                           f'{np.linalg.norm(q):.4f})')
     robot = Robot(frame_id=v['robot.frame_id'], anchors_m=anchors, attachments_m=attachments,
-                  mass_kg=v['robot.mass_kg'], inertia_kg_m2=inertia, gravity_m_s2=gravity)
+                  mass_kg=v['robot.mass_kg'], inertia_kg_m2=inertia, gravity_m_s2=gravity,
+                  **_real_robot(v, anchors.shape[0]))
     settings = Settings(
         robot=robot,
         cable=CableProperties(v['cable.area_m2'], v['cable.youngs_modulus_pa'],
@@ -616,6 +627,35 @@ def settings_from_params(flat: dict) -> Settings:
     _check_settings(settings)
     check_problem_size(settings)
     return settings
+
+
+def _per_cable(v: dict, name: str, n: int, per: int = 1) -> np.ndarray:
+    """``v[name]`` as (n, per) or (n,) (per = 1), zeros where empty; a count that does not
+    match the cables is a :class:`ConfigError`."""
+    values = v[name]
+    if values.size == 0:
+        values = np.zeros(n * per)
+    if values.size != n * per:
+        raise ConfigError(f'{name} has {values.size} values but robot.anchors has {n} cables '
+                          f'({n * per} values)')
+    return values.reshape(n, per) if per > 1 else values
+
+
+def _real_robot(v: dict, n: int) -> dict:
+    """The optional real-robot description (SPEC section 3) as :class:`Robot` arguments."""
+    axes = _per_cable(v, 'robot.pulley_axes', n, 3)
+    radii = _per_cable(v, 'robot.pulley_radii_m', n)
+    winch = _per_cable(v, 'cable.winch_side_lengths_m', n)
+    for name, values in (('robot.pulley_radii_m', radii), ('cable.winch_side_lengths_m', winch)):
+        if values.min(initial=0.0) < 0.0:
+            raise ConfigError(f'{name} has a negative length: {values.min():g} m')
+    eyelet = (radii > 0) & ~np.any(axes, axis=1)
+    if eyelet.any():
+        i = int(np.flatnonzero(eyelet)[0])
+        raise ConfigError(f'robot.pulley_radii_m gives cable {i} a pulley of {radii[i]:g} m but '
+                          f'robot.pulley_axes gives it no swivel axis (zero: an eyelet)')
+    return {'pulley_axes': axes, 'pulley_radii_m': radii, 'winch_side_lengths_m': winch,
+            'center_of_mass_m': v['robot.center_of_mass_m']}
 
 
 def node_options(flat: dict) -> dict:

@@ -714,7 +714,8 @@ def wrench_set_at(settings: Settings, eq: Equilibrium) -> WrenchSet:
                                                 s.external_force_n, s.external_moment_nm))
     return WrenchSet(eq.geometry.structure_matrix if chord else _tangent_structure(eq),
                      s.tension_min_n, s.tension_max_n,
-                     required_wrench(s.robot, s.external_force_n, s.external_moment_nm),
+                     required_wrench(s.robot, s.external_force_n, s.external_moment_nm,
+                                     eq.geometry.rotation),
                      full_rank=chord)
 
 

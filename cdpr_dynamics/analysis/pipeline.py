@@ -101,13 +101,14 @@ def equilibrium(settings: Settings, position_m=None, rotation=None,
         result = TensionResult.solved(held.tension_n, float(np.abs(residual).max()), 0.0, 0.0)
     else:
         wrench = required_wrench(settings.robot, settings.external_force_n,
-                                 settings.external_moment_nm)
+                                 settings.external_moment_nm, geo.rotation)
         result = (solver or new_tension_solver(settings)).solve(geo.structure_matrix, wrench)
         if not result.feasible:
             raise AnalysisError(f'infeasible tension distribution: {result.reason}')
         residual = geo.structure_matrix @ result.tension_n - wrench
     cables = CableSet(geo.chord_m, result.tension_n, settings.cable.ea_n,
-                      settings.cable.weight_per_length_n_per_m, settings.robot.gravity_m_s2)
+                      settings.cable.weight_per_length_n_per_m, settings.robot.gravity_m_s2,
+                      anchor_end=geo.anchor_end)
     # its cached length_m and unit are the geometry's (the same numbers: |l_i|, l_i / |l_i|)
     cables.__dict__.update(length_m=geo.length_m, unit=geo.unit)
     ea = settings.cable.ea_n

@@ -337,7 +337,7 @@ def _fill(row, settings, pose, solver, previous, hint, auto_columns):
     except GeometryError as exc:
         raise _Refused('outside', str(exc)) from None
     wrench = required_wrench(settings.robot, settings.external_force_n,
-                             settings.external_moment_nm)
+                             settings.external_moment_nm, rotation)
     if not is_underactuated(settings.robot):
         row['tension_margin_n'] = WrenchSet(geo.structure_matrix, settings.tension_min_n,
                                             settings.tension_max_n, wrench).margin(np.zeros(3))

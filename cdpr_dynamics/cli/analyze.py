@@ -129,7 +129,7 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
         'method': assembly.method,
         'dofs': system.dofs,
         'tensions_n': eq.tensions.tension_n.tolist(),
-        'cable_lengths_m': eq.geometry.length_m.tolist(),
+        'cable_lengths_m': eq.geometry.cable_length_m.tolist(),
         'sag_parameter': sag.tolist(),
         'equilibrium': equilibrium_summary(settings, eq),
         'geometry': geometry_summary(eq),

@@ -59,10 +59,13 @@ def counter(system: PlatformSystem) -> 'Counter | None':
         if np.any(~(np.asarray(members.tension_n) > 0.0)):
             raise DynamicsError('dsm natural frequencies need every cable taut (T > 0): '
                                 + '; '.join(assembly.warnings))
+        if members.anchor_compliance is not None:
+            raise DynamicsError('dsm natural frequencies of cables with pulleys or winch-side '
+                                'cable are not implemented (its FRF is): use fem')
         return Counter(system, _ContinuousInterior(members))
     if assembly.blocks.nodes < 2:
         return None
-    if assembly.method == 'fem':
+    if assembly.method == 'fem' and assembly.decoupled.normal is None:   # uniform chains
         return Counter(system, _UniformInterior(system))
     return Counter(system, _ChainInterior(assembly.blocks))
 

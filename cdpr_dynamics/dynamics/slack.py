@@ -123,6 +123,7 @@ class CompressionFreeCables:
             f0 = self.tension[:, None] * self.unit
             k_rot = -np.einsum('cij,cjk->cik', skew(f0), skew(geo.lever_m))
             self.rotation[:, 3:, 3:] = 0.5 * (k_rot + np.swapaxes(k_rot, 1, 2))
+        self.load_rotation = system.load_stiffness    # gravity's moment: slack or not
         self.static_force = np.einsum('cia,ci->a', self.g, self.tension[:, None] * self.unit)
         self._g2 = self.g.reshape(-1, nd)                               # (3 n, nd)
         self._gtg = np.einsum('cia,cib->cab', self.g, self.g)           # G_i^T G_i
@@ -159,7 +160,7 @@ class CompressionFreeCables:
             return pull, restoring, tangent
         restoring = self.static_force - self._g2.T @ force.reshape(-1)
         h = np.matmul(t[:, None, :], self.g)[:, 0, :]                         # (n, nd)
-        rot = np.tensordot(pull / self.tension, self.rotation, 1)
+        rot = np.tensordot(pull / self.tension, self.rotation, 1) + self.load_rotation
         restoring += rot @ (q + stiffness_factor * qdot)
         tangent = (h.T * axial) @ h + np.tensordot(per_length, self._gtg, 1) + rot
         return pull, restoring, tangent

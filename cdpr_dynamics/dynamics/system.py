@@ -93,7 +93,8 @@ class PlatformSystem:
     geometry: Geometry
     assembly: CableAssembly
     platform_mass: np.ndarray         # (ndof, ndof)
-    platform_stiffness: np.ndarray    # (ndof, ndof) geometric rotation term only
+    platform_stiffness: np.ndarray    # (ndof, ndof) geometric rotation terms (load's included)
+    load_stiffness: np.ndarray | float = 0.0   # (ndof, ndof) gravity's part of it, or 0
 
     @property
     def platform_dofs(self) -> int:
@@ -155,7 +156,7 @@ class PlatformSystem:
             congruence = self._congruence.T
         else:
             cables = assembly.decoupled
-            flat = cables.stiffness(lam).reshape(2 * cables.unit.shape[0], lam.size)  # (2n, nl)
+            flat = cables.stiffness(lam).reshape(-1, lam.size)           # (2n or 3n, nl)
             congruence = self._decoupled_congruence.T
         if not np.iscomplexobj(flat):
             return congruence @ flat
@@ -182,13 +183,19 @@ class PlatformSystem:
 
     @functools.cached_property
     def _decoupled_congruence(self) -> np.ndarray:
-        """(2n, ndof^2): rows G_i^T u_i u_i^T G_i (axial), then G_i^T (I - u_i u_i^T) G_i."""
-        unit = self.assembly.decoupled.unit
+        """(2n, ndof^2): rows G_i^T u_i u_i^T G_i (axial), then G_i^T (I - u_i u_i^T) G_i; with
+        pulley normals m_i (3n, ndof^2): the transverse rows without m_i m_i^T, then
+        G_i^T m_i m_i^T G_i."""
+        cables = self.assembly.decoupled
+        unit = cables.unit
         n = unit.shape[0]
         uu = (unit[:, :, None] * unit[:, None, :]).reshape(n, 9)
         per_cable = self._congruence.reshape(n, 9, -1)
-        return np.concatenate([np.einsum('ck,ckm->cm', uu, per_cable),
-                               np.einsum('ck,ckm->cm', np.eye(3).ravel() - uu, per_cable)])
+        tensors = [uu, np.eye(3).ravel() - uu]
+        if cables.normal is not None:
+            mm = (cables.normal[:, :, None] * cables.normal[:, None, :]).reshape(n, 9)
+            tensors = [uu, tensors[1] - mm, mm]
+        return np.concatenate([np.einsum('ck,ckm->cm', t, per_cable) for t in tensors])
 
     @functools.cached_property
     def _constant_cables(self) -> np.ndarray:
@@ -273,14 +280,30 @@ def _end_coupling(off: np.ndarray, g: np.ndarray) -> np.ndarray:
 
 
 def platform_system(robot: Robot, geometry: Geometry, assembly: CableAssembly) -> PlatformSystem:
-    """Combine the platform (mass, rotational geometric stiffness) with the cables."""
+    """Combine the platform (mass, rotational geometric stiffness) with the cables.
+
+    The rotational term sums over the cable forces at their attachments and, where the centre
+    of mass is off the reference point, the weight m g at c = R c_P (gravity's load
+    stiffness)."""
     nd = robot.platform_dofs
     stiffness = np.zeros((nd, nd))
+    load = 0.0
     if nd == 6:
         k_rot = -np.einsum('cij,cjk->ik', skew(assembly.end_force_n), skew(geometry.lever_m))
         stiffness[3:, 3:] = 0.5 * (k_rot + k_rot.T)
+        if robot.offset_mass:
+            load = np.zeros((nd, nd))
+            load[3:, 3:] = gravity_load_stiffness(robot, geometry.rotation)
+            stiffness += load
     return PlatformSystem(geometry, assembly, robot.platform_mass_matrix(geometry.rotation),
-                          stiffness)
+                          stiffness, load)
+
+
+def gravity_load_stiffness(robot: Robot, rotation: np.ndarray) -> np.ndarray:
+    """(3, 3) load stiffness of gravity's moment on the rotations, -sym([m g]x [c]x) with
+    c = R c_P the centre of mass off the reference point (the weight turning with it)."""
+    k = -skew(robot.mass_kg * robot.gravity_m_s2) @ skew(rotation @ robot.center_of_mass_m)
+    return 0.5 * (k + k.T)
 
 
 # --------------------------------------------------------------------------- frequency response

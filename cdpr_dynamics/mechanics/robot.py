@@ -11,20 +11,26 @@ the cables must supply is ``W^T T = w`` with the 6 x n structure matrix (transpo
 
     W^T = [[u_1 ... u_n], [r_1 x u_1 ... r_n x u_n]],    w = -(m g + f_e, tau_e).
 
-A point-mass platform (all ``b_i = 0``) has 3 DOFs (translation); a rigid platform has 6
-(translation, then small rotation about the centroid).
+A point-mass platform (all ``b_i = 0``, centre of mass at the reference point) has 3 DOFs
+(translation); a rigid platform has 6 (translation of the reference point, then small rotation
+about it).
+
+Pulleys (:func:`pulley_exits`): with a swivelling pulley of radius r_i and swivel axis k_i at
+anchor i, ``a_i`` is D_i (where the cable from the winch meets the groove) and the cable's free
+span runs from the exit point B_i to the attachment: then ``l_i = B_i - (p + R b_i)``, and the
+cable's length from D_i is r_i beta_i + |l_i| with beta_i the wrap angle.
 """
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import math
 
 import numpy as np
 from scipy.linalg.lapack import dgesdd as _gesdd
 
-from cdpr_dynamics.models.base import row_norm  # noqa: F401 (the geometry helpers' too)
+from cdpr_dynamics.models.base import AnchorEnd, row_norm  # noqa: F401 (geometry helpers')
 
 
 _DIAG3 = (0, 1, 2)    # the diagonal of a 3 x 3 block, as an index
@@ -117,7 +123,13 @@ def skew(v: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class Robot:
     """A CDPR: n anchors (n, 3) m, attachments (n, 3) m in the platform frame, mass kg,
-    inertia (3, 3) kg m^2 about the centroid in the platform frame, gravity (3,) m/s^2."""
+    inertia (3, 3) kg m^2 about the centre of mass in the platform frame, gravity (3,) m/s^2.
+
+    Optional (defaults give the ideal robot): ``pulley_axes`` (n, 3) swivel axes k_i (unit
+    vectors along the cable's travel from the winch into the pulley; zero rows: eyelets),
+    ``pulley_radii_m`` (n,), ``winch_side_lengths_m`` (n,) the cable between drum and anchor,
+    ``center_of_mass_m`` (3,) in the platform frame.
+    """
 
     frame_id: str
     anchors_m: np.ndarray
@@ -125,15 +137,62 @@ class Robot:
     mass_kg: float
     inertia_kg_m2: np.ndarray
     gravity_m_s2: np.ndarray
+    pulley_axes: np.ndarray | None = field(default=None)
+    pulley_radii_m: np.ndarray | None = field(default=None)
+    winch_side_lengths_m: np.ndarray | None = field(default=None)
+    center_of_mass_m: np.ndarray | None = field(default=None)
+
+    def __post_init__(self):
+        n = self.anchors_m.shape[0]
+        defaults = {'pulley_axes': np.zeros((n, 3)), 'pulley_radii_m': np.zeros(n),
+                    'winch_side_lengths_m': np.zeros(n), 'center_of_mass_m': np.zeros(3)}
+        for name, default in defaults.items():
+            value = getattr(self, name)
+            value = default if value is None else np.asarray(value, dtype=float)
+            object.__setattr__(self, name, value.reshape(default.shape))
+        norm = row_norm(self.pulley_axes)
+        unit = np.divide(self.pulley_axes, norm[:, None], out=np.zeros((n, 3)),
+                         where=norm[:, None] > 0)
+        object.__setattr__(self, 'pulley_axes', unit)
 
     @property
     def n_cables(self) -> int:
         return self.anchors_m.shape[0]
 
     @functools.cached_property
-    def point_mass(self) -> bool:
-        """True when every cable meets the centroid: 3 platform DOFs instead of 6."""
+    def pulley_index(self) -> np.ndarray | None:
+        """Indices of the cables over a pulley (swivel axis and radius > 0), or None."""
+        index = np.flatnonzero((self.pulley_radii_m > 0) & row_norm(self.pulley_axes).astype(bool))
+        return index if index.size else None
+
+    @functools.cached_property
+    def pulley_references(self) -> np.ndarray:
+        """(n, 3) unit vectors normal to each swivel axis: swivel angle zero (the world z axis
+        projected on the pulley's swivel plane, else the x axis)."""
+        k = self.pulley_axes
+        out = np.zeros_like(k)
+        for axis in (np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])):
+            projected = axis - (k @ axis)[:, None] * k
+            norm = row_norm(projected)
+            todo = (norm > 1e-6) & ~row_norm(out).astype(bool)
+            out[todo] = projected[todo] / norm[todo, None]
+        return out
+
+    @functools.cached_property
+    def has_anchor_ends(self) -> bool:
+        """True when a pulley or a winch-side length lies in series with a free span."""
+        return self.pulley_index is not None or bool(np.any(self.winch_side_lengths_m))
+
+    @functools.cached_property
+    def centred_attachments(self) -> bool:
+        """True when every cable ends at the platform frame's origin (all b_i = 0)."""
         return not np.any(self.attachments_m)
+
+    @functools.cached_property
+    def point_mass(self) -> bool:
+        """True when every cable meets the centroid, the centre of mass: 3 platform DOFs
+        instead of 6."""
+        return self.centred_attachments and not np.any(self.center_of_mass_m)
 
     @property
     def platform_dofs(self) -> int:
@@ -144,31 +203,71 @@ class Robot:
         """Axis-aligned box spanned by the anchors (the frame), lower and upper corner."""
         return self.anchors_m.min(axis=0), self.anchors_m.max(axis=0)
 
+    @functools.cached_property
+    def offset_mass(self) -> bool:
+        """True when the centre of mass is away from the platform frame's origin."""
+        return bool(np.any(self.center_of_mass_m))
+
     def platform_mass_matrix(self, rotation: np.ndarray) -> np.ndarray:
-        """diag(m I, R I_P R^T) of the platform DOFs (Eq. 7, inertia in the world frame)."""
+        """Mass matrix of the platform DOFs about the reference point (Eq. 7 for a centred
+        mass): [[m I, -m [c]x], [m [c]x, R I_P R^T - m [c]x [c]x]] with c = R c_P the centre
+        of mass in world axes (the kinetic energy of v_com = v - [c]x omega)."""
         n = self.platform_dofs
         mass = np.zeros((n, n))
         mass[_DIAG3, _DIAG3] = self.mass_kg                 # m I
         if n == 6:
             mass[3:, 3:] = rotation @ self.inertia_kg_m2 @ rotation.T
+            if self.offset_mass:
+                c = skew(rotation @ self.center_of_mass_m)
+                mass[:3, 3:] = -self.mass_kg * c
+                mass[3:, :3] = self.mass_kg * c
+                mass[3:, 3:] -= self.mass_kg * (c @ c)
         return mass
 
 
 @dataclass(frozen=True, eq=False)
-class Geometry:
-    """Cable geometry at one pose; every array is stacked over cables (first axis n)."""
+class PulleyState:
+    """The pulleys at one pose, stacked over every cable (eyelets: exit at the anchor, zeros).
 
-    position_m: np.ndarray        # (3,) platform centroid
+    ``exit_m`` (n, 3) the exit points B_i; ``wrap_rad`` (n,) the wrap angles beta_i;
+    ``swivel_rad`` (n,) each pulley plane's angle about its swivel axis (from
+    :attr:`Robot.pulley_references`); ``center_m`` (n, 3) the pulley centres.
+    """
+
+    exit_m: np.ndarray
+    wrap_rad: np.ndarray
+    swivel_rad: np.ndarray
+    center_m: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """Cable geometry at one pose; every array is stacked over cables (first axis n).
+
+    The chord is the free span, from the attachment to the exit point (the anchor without a
+    pulley); ``path_length_m`` is the cable's length from its anchor D_i (wrap included),
+    ``anchor_end`` what lies in series with the free span at its anchor end (None: nothing).
+    """
+
+    position_m: np.ndarray        # (3,) platform reference point
     rotation: np.ndarray          # (3, 3) platform to world
     lever_m: np.ndarray           # (n, 3) r_i = R b_i, world frame
-    chord_m: np.ndarray           # (n, 3) l_i, attachment -> anchor
-    length_m: np.ndarray          # (n,) L_i
+    chord_m: np.ndarray           # (n, 3) l_i, attachment -> anchor (exit point)
+    length_m: np.ndarray          # (n,) L_i, the free span
     unit: np.ndarray              # (n, 3) u_i
     structure_matrix: np.ndarray  # (ndof, n) W^T: wrench per unit tension
+    pulleys: PulleyState | None = None
+    anchor_end: AnchorEnd | None = None
+    path_length_m: np.ndarray | None = None      # (n,); None: the free span's length
 
     @property
     def n_cables(self) -> int:
         return self.length_m.shape[0]
+
+    @property
+    def cable_length_m(self) -> np.ndarray:
+        """(n,) each cable's length from its anchor D_i to its attachment (wrap included)."""
+        return self.length_m if self.path_length_m is None else self.path_length_m
 
     def attachment_map(self) -> np.ndarray:
         """(n, 3, ndof): attachment displacement per platform DOF, G_i = [I, -[r_i]x]."""
@@ -180,30 +279,96 @@ class Geometry:
         return g
 
 
+def pulley_exits(anchors_m, axes, radii_m, attachments_m, references=None):
+    """Exit points of swivelling pulleys (SPEC section 3), stacked over cables.
+
+    The pulley plane holds the swivel axis k and the attachment A; its centre is
+    C = D + r e (e the unit normal from the axis towards A); the cable runs along k into the
+    groove at D, wraps by beta and leaves at the tangent point B = C + r (-cos beta e +
+    sin beta k) towards A. In the plane (x along e, y along k, from C) with A at (x, y):
+    beta = pi/2 + atan2(r, s) - atan2(y, x), s = |A - B| = sqrt(x^2 + y^2 - r^2).
+    Returns (exit B (n, 3), wrap beta (n,), plane normal m = k x e (n, 3), centre C (n, 3),
+    swivel angle (n,) of e from ``references`` or None); raises :class:`GeometryError` where an
+    attachment lies on a swivel axis or inside its pulley.
+    """
+    d, k, r = anchors_m, axes, radii_m
+    v = attachments_m - d
+    along = np.add.reduce(v * k, axis=-1)
+    normal = v - along[:, None] * k
+    out = row_norm(normal)
+    if out.min() < 1e-9:
+        raise GeometryError(f'an attachment lies on the swivel axis of its pulley (cable '
+                            f'{int(np.argmin(out))}): the pulley plane is undefined')
+    e = normal / out[:, None]
+    x = out - r
+    span2 = x * x + along * along - r * r
+    if span2.min() <= 0.0:
+        raise GeometryError(f'an attachment lies inside its pulley (cable '
+                            f'{int(np.argmin(span2))})')
+    wrap = np.mod(0.5 * np.pi + np.arctan2(r, np.sqrt(span2)) - np.arctan2(along, x),
+                  2.0 * np.pi)
+    centre = d + r[:, None] * e
+    exit_m = centre + r[:, None] * (np.sin(wrap)[:, None] * k - np.cos(wrap)[:, None] * e)
+    swivel = None
+    if references is not None:
+        swivel = np.arctan2(np.add.reduce(e * cross(k, references), axis=-1),
+                            np.add.reduce(e * references, axis=-1))
+    return exit_m, wrap, cross(k, e), centre, swivel
+
+
+def _pulley_span(robot: Robot, attach: np.ndarray):
+    """(exit points over every cable, :class:`PulleyState`, :class:`AnchorEnd`, path
+    lengths' wrapped part) of ``robot``'s pulleys for attachments ``attach`` (n, 3)."""
+    n = robot.n_cables
+    anchors = robot.anchors_m.copy()
+    wrap, swivel = np.zeros(n), np.zeros(n)
+    centre, normal, pivot = anchors.copy(), np.zeros((n, 3)), np.zeros(n)
+    i = robot.pulley_index
+    if i is not None:
+        radius = robot.pulley_radii_m[i]
+        exit_i, wrap[i], normal[i], centre[i], swivel[i] = pulley_exits(
+            anchors[i], robot.pulley_axes[i], radius, attach[i], robot.pulley_references[i])
+        anchors[i] = exit_i
+        pivot[i] = radius * np.tan(0.5 * wrap[i])
+    wrapped = robot.pulley_radii_m * wrap
+    end = AnchorEnd(wrapped + robot.winch_side_lengths_m, normal, pivot)
+    state = None if i is None else PulleyState(anchors, wrap, swivel, centre)
+    return anchors, state, end, wrapped
+
+
 def geometry(robot: Robot, position_m, rotation=None) -> Geometry:
     """Cable vectors, lengths, unit vectors and structure matrix at pose (p, R).
 
     The platform may be anywhere, below or beside its anchors (a suspended robot) included.
     Raises :class:`GeometryError` when the pose is not finite or puts an attachment on its
-    anchor (a zero-length cable). Called on every pose update:
-    its tests run on the three coordinates as Python floats and the arrays take one numpy call
-    per line (``|l_i|`` as ``np.linalg.norm`` computes it, without its argument handling).
+    anchor (a zero-length cable), on a pulley's swivel axis or inside its pulley. Called on
+    every pose update: its tests run on the three coordinates as Python floats and the arrays
+    take one numpy call per line (``|l_i|`` as ``np.linalg.norm`` computes it, without its
+    argument handling).
     """
     p = np.asarray(position_m, dtype=float).reshape(3)
     xyz = p.tolist()
     rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
     if not (all(map(math.isfinite, xyz)) and (rotation is None or np.isfinite(rot).all())):
         raise GeometryError('pose is not finite')
-    if robot.point_mass:          # every b_i = 0: r_i = R b_i = 0
+    if robot.centred_attachments:                # every b_i = 0: r_i = R b_i = 0
         lever = np.zeros(robot.anchors_m.shape)
-        chord = robot.anchors_m - p
+        attach = p
     else:
         lever = robot.attachments_m @ rot.T
-        chord = robot.anchors_m - (p + lever)
+        attach = p + lever
+    pulleys = anchor_end = path = None
+    anchors = robot.anchors_m
+    if robot.has_anchor_ends:
+        anchors, pulleys, anchor_end, wrapped = _pulley_span(
+            robot, np.broadcast_to(attach, robot.anchors_m.shape))
+    chord = anchors - attach
     length = row_norm(chord)
     if length.min() < 1e-6:
         i = int(np.argmin(length))
         raise GeometryError(f'cable {i} has zero length: attachment on its anchor')
+    if pulleys is not None:
+        path = length + wrapped
     unit = chord / length[:, None]
     if robot.point_mass:
         wt = unit.T.copy()
@@ -211,15 +376,23 @@ def geometry(robot: Robot, position_m, rotation=None) -> Geometry:
         wt = np.empty((6, robot.n_cables))
         wt[:3] = unit.T
         wt[3:] = cross(lever, unit).T
-    return Geometry(p, rot, lever, chord, length, unit, wt)
+    return Geometry(p, rot, lever, chord, length, unit, wt, pulleys, anchor_end, path)
 
 
-def required_wrench(robot: Robot, external_force_n=(0, 0, 0), external_moment_nm=(0, 0, 0)):
-    """The wrench the cables must supply, w = -(m g + f_e, tau_e) (Eq. 9), sized to the DOFs."""
-    force = -(robot.mass_kg * robot.gravity_m_s2 + np.asarray(external_force_n))
+def required_wrench(robot: Robot, external_force_n=(0, 0, 0), external_moment_nm=(0, 0, 0),
+                    rotation=None):
+    """The wrench the cables must supply, w = -(m g + f_e, c x m g + tau_e) (Eq. 9), sized to
+    the DOFs: gravity acts at the centre of mass c = R c_P (``rotation`` R, default identity),
+    the external wrench at the reference point."""
+    weight = robot.mass_kg * robot.gravity_m_s2
+    force = -(weight + np.asarray(external_force_n))
     if robot.point_mass:
         return force
-    return np.concatenate([force, -np.asarray(external_moment_nm, dtype=float)])
+    moment = -np.asarray(external_moment_nm, dtype=float)
+    if robot.offset_mass:
+        arm = robot.center_of_mass_m if rotation is None else rotation @ robot.center_of_mass_m
+        moment = moment - np.cross(arm, weight)
+    return np.concatenate([force, moment])
 
 
 def singular_values(matrix: np.ndarray) -> np.ndarray:

@@ -396,7 +396,7 @@ def equilibrium_for(settings, eq: Equilibrium, method: str | None,
         return eq
     begin = time.perf_counter()
     wrench = required_wrench(settings.robot, settings.external_force_n,
-                             settings.external_moment_nm)
+                             settings.external_moment_nm, eq.geometry.rotation)
     sag = sag_equilibrium(eq.cables, eq.geometry.lever_m, wrench, settings.tension_min_n,
                           settings.tension_max_n, start=None if start is None else start.sag)
     result = TensionResult(sag.tension_n, 'solved', True, float(np.abs(sag.residual).max()),
@@ -404,7 +404,7 @@ def equilibrium_for(settings, eq: Equilibrium, method: str | None,
                            eq.tensions.tolerance_n)
     cables = CableSet(eq.cables.chord_m, sag.tension_n, eq.cables.ea_n,
                       eq.cables.weight_per_length_n_per_m, eq.cables.gravity_m_s2,
-                      sag_state=sag.state)
+                      sag_state=sag.state, anchor_end=eq.cables.anchor_end)
     return Equilibrium(eq.geometry, result, cables, 'sag', sag.end_force_n,
                        sag.state.unstrained_length_m, sag.residual, sag.iterations,
                        eq.warnings + sag.warnings, sag, eq.balance)

@@ -30,6 +30,32 @@ def row_norm(x: np.ndarray) -> np.ndarray:
     return np.sqrt(np.add.reduce(x * x, axis=-1))
 
 
+class AnchorEnd(NamedTuple):
+    """What lies between each cable's free span and its fixed end, stacked over cables.
+
+    ``series_length_m`` (n,): cable in series with the free span (wrapped on a pulley and
+    between drum and anchor): axial compliance series_length / EA. ``plane_normal`` (n, 3):
+    the unit normal of a swivelling pulley's plane (zero rows: no pulley); ``pivot_m`` (n,):
+    the distance c = r tan(beta/2) from the exit point back along the cable to the swivel
+    axis, about which the span turns out of the pulley plane: compliance c / T along the
+    normal. In the pulley plane, across the cable, the exit point does not move.
+    """
+
+    series_length_m: np.ndarray
+    plane_normal: np.ndarray
+    pivot_m: np.ndarray
+
+    @property
+    def has_pulleys(self) -> bool:
+        return bool(np.any(self.pivot_m))
+
+    def compliance(self, ea_n: float, tension_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(axial, out-of-plane) compliance of each anchor end (m/N), (n,) each."""
+        with np.errstate(divide='ignore', invalid='ignore'):
+            normal = np.where(self.pivot_m > 0, self.pivot_m / tension_n, 0.0)
+        return self.series_length_m / ea_n, normal
+
+
 @dataclass(frozen=True, eq=False)
 class CableSet:
     """The cables at one state, stacked over cables (first axis n); SI units.
@@ -38,7 +64,8 @@ class CableSet:
     ``tension_n`` is the tension at the platform end from the tension distribution;
     ``sag_state`` the elastic catenaries at these tensions where the statics already solved
     them (a :class:`cdpr_dynamics.models.catenary.CatenaryState`, reused by the sag-aware
-    models), else None.
+    models), else None; ``anchor_end`` the pulleys and winch-side cable in series at the
+    anchor ends (:class:`AnchorEnd`), None for fixed anchors.
     """
 
     chord_m: np.ndarray
@@ -47,6 +74,7 @@ class CableSet:
     weight_per_length_n_per_m: float
     gravity_m_s2: np.ndarray
     sag_state: object = None
+    anchor_end: AnchorEnd | None = None
 
     @property
     def n_cables(self) -> int:
@@ -68,10 +96,12 @@ class CableSet:
 
     def with_tension(self, tension_n) -> 'CableSet':
         return CableSet(self.chord_m, np.asarray(tension_n, dtype=float), self.ea_n,
-                        self.weight_per_length_n_per_m, self.gravity_m_s2)
+                        self.weight_per_length_n_per_m, self.gravity_m_s2,
+                        anchor_end=self.anchor_end)
 
     def reversed(self) -> 'CableSet':
-        """Each cable seen from its other end (anchor <-> attachment), same tension."""
+        """Each cable seen from its other end (anchor <-> attachment), same tension, both
+        ends fixed (no anchor end)."""
         return CableSet(-self.chord_m, self.tension_n, self.ea_n,
                         self.weight_per_length_n_per_m, self.gravity_m_s2)
 
@@ -123,30 +153,74 @@ class CableAssembly:
 
 class AxialTransverse(NamedTuple):
     """End stiffness of straight cables whose axial and transverse motions decouple:
-    S_i(lam) = a_i(lam) u_i u_i^T + t_i(lam) (I - u_i u_i^T).
+    S_i(lam) = a_i(lam) u_i u_i^T + t_i(lam) (I - u_i u_i^T), and with pulleys
+    + (o_i(lam) - t_i(lam)) m_i m_i^T (o: across the cable, normal to the pulley plane m_i).
 
     ``unit`` (n, 3); ``stiffness(lam)`` for ``lam`` (nl,) gives (2, n, nl): a (row 0) and t
-    (row 1) in N/m, frequency last, real for real lam and complex for complex lam.
+    (row 1) in N/m, frequency last, real for real lam and complex for complex lam; with
+    ``normal`` (n, 3) it gives (3, n, nl), o in row 2.
     """
 
     unit: np.ndarray
     stiffness: Callable[[np.ndarray], np.ndarray]
+    normal: np.ndarray | None = None
 
     def end_stiffness(self, lam) -> np.ndarray:
         """(nl, n, 3, 3) complex: the :class:`CableAssembly` ``end_stiffness`` of these."""
         parts = self.stiffness(np.ravel(lam))
-        return axial_transverse(self.unit, parts[0].T, parts[1].T).astype(complex, copy=False)
+        return axial_transverse(self.unit, parts[0].T, parts[1].T, self.normal,
+                                None if self.normal is None else parts[2].T
+                                ).astype(complex, copy=False)
 
 
-def axial_transverse(unit: np.ndarray, axial: np.ndarray, transverse: np.ndarray) -> np.ndarray:
-    """3x3 tensors ``a u u^T + t (I - u u^T)`` for stacked unit vectors.
+def axial_transverse(unit: np.ndarray, axial: np.ndarray, transverse: np.ndarray,
+                     normal: np.ndarray | None = None, out_of_plane=None) -> np.ndarray:
+    """3x3 tensors ``a u u^T + t (I - u u^T)`` for stacked unit vectors, and with ``normal``
+    (n, 3) unit vectors normal to u (or zero) ``+ (o - t) m m^T`` (o: ``out_of_plane``).
 
     ``unit`` (n, 3); ``axial``, ``transverse`` broadcastable to (..., n): result (..., n, 3, 3).
     """
     uu = unit[:, :, None] * unit[:, None, :]
     axial = np.asarray(axial)[..., None, None]
     transverse = np.asarray(transverse)[..., None, None]
-    return axial * uu + transverse * (np.eye(3) - uu)
+    out = axial * uu + transverse * (np.eye(3) - uu)
+    if normal is not None:
+        mm = normal[:, :, None] * normal[:, None, :]
+        out = out + (np.asarray(out_of_plane)[..., None, None] - transverse) * mm
+    return out
+
+
+def anchor_series(stiffness: np.ndarray, cables: CableSet, lam=None) -> np.ndarray:
+    """End stiffness (..., n, 3, 3) of cables with their :class:`AnchorEnd` in series.
+
+    Massless cables (``lam`` None): (S^-1 + F)^-1 with F = f_a u u^T + f_m m m^T
+    (:meth:`AnchorEnd.compliance`, u the chord), as S - S V E (I + V^T S V E)^-1 V^T S with
+    V = [u m], E = diag(f_a, f_m) (no inverse of S, exact where F = 0). Cables with mass at
+    ``lam`` (nl,), the leading axis of ``stiffness``: the anchor end moves the cable's far
+    end, whose transfer t^2 = s^2 + k mu lam (k = EA along u, T along m) a straight
+    continuous cable has, so each direction also loses k mu lam f / (1 + s f) (exact for
+    straight cables: (s - k mu lam f)/(1 + s f), ``dsm``'s). ``stiffness`` unchanged without
+    an anchor end."""
+    end = cables.anchor_end
+    if end is None:
+        return stiffness
+    f_axial, f_normal = end.compliance(cables.ea_n, cables.tension_n)
+    v = np.stack([cables.unit, end.plane_normal], axis=-1)            # (n, 3, 2)
+    sv = stiffness @ v                                                # (..., n, 3, 2)
+    vsv = np.swapaxes(v, -1, -2) @ sv                                 # (..., n, 2, 2)
+    e = np.stack([f_axial, f_normal], axis=-1)                        # (n, 2)
+    a = np.eye(2) + vsv * e[..., None, :]                             # I + V^T S V E
+    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    inverse = np.stack([np.stack([a[..., 1, 1], -a[..., 0, 1]], -1),
+                        np.stack([-a[..., 1, 0], a[..., 0, 0]], -1)], -2) / det[..., None, None]
+    out = stiffness - (sv * e[..., None, :]) @ inverse @ np.swapaxes(sv, -1, -2)
+    if lam is None:
+        return out
+    k = np.stack([np.full(cables.n_cables, cables.ea_n), cables.tension_n], axis=-1)    # (n, 2)
+    lam = np.asarray(lam).reshape((-1,) + (1,) * (stiffness.ndim - 2))
+    s = np.diagonal(vsv, axis1=-2, axis2=-1)                          # (..., n, 2)
+    loss = k * cables.mass_per_length_kg_m * lam * e / (1.0 + s * e)
+    return out - np.einsum('cia,...ca,cja->...cij', v, loss, v)
 
 
 def massless_assembly(method: str, stiffness: np.ndarray, end_force_n: np.ndarray, valid: bool,

@@ -25,6 +25,12 @@ come from Wittrick-Williams counting on the condensed platform dynamic stiffness
 cables' fixed-end modes (:meth:`ContinuousCables.fixed_end_mode_count`) as J0
 (:mod:`cdpr_dynamics.dynamics.modes`).
 
+An anchor end (:class:`cdpr_dynamics.models.base.AnchorEnd`) is a massless spring of compliance
+f between the ground and the cable's anchor end, in a direction of its own: with the fixed-
+fixed member's end stiffness s and transfer t (t^2 = s^2 + k mu lam, k = EA or T) the end
+feels s - t^2 f/(1 + s f) = (s - k mu lam f)/(1 + s f) (:meth:`ContinuousCables.parts`): along
+the cable (f = series length / EA) and normal to the pulley plane (f = c / T).
+
 Valid while the cables are taut and their sag negligible; a cable with T <= 0 is flagged
 (``valid`` False), its transverse stiffness taken as the T -> 0 limit 0 (T = 0) or the
 unstable real value (T/L) z coth z (T < 0).
@@ -236,6 +242,8 @@ class ContinuousCables:
     ea_n: float
     mass_per_length_kg_m: float
     wave: Callable[[np.ndarray], np.ndarray] = z_cot_z     # z cot z of z^2
+    anchor_compliance: np.ndarray | None = None   # (2, n) axial, out-of-plane (m/N); or None
+    normal: np.ndarray | None = None               # (n, 3) pulley plane normals; or None
 
     def axial(self, lam) -> np.ndarray:
         """(nl, n) exact axial end stiffness (EA/L) z cot z, z^2 = lam mu L^2 / EA."""
@@ -247,9 +255,18 @@ class ContinuousCables:
 
     def parts(self, lam) -> np.ndarray:
         """(2, n, nl) axial and transverse end stiffness, frequency last (real for real lam):
-        the :class:`cdpr_dynamics.models.base.AxialTransverse` of these cables."""
-        return self._waves(lam, np.stack([np.full(self.length_m.shape, self.ea_n),
-                                          self.tension_n]))
+        the :class:`cdpr_dynamics.models.base.AxialTransverse` of these cables; with an
+        anchor end (3, n, nl), the out-of-plane row last (module doc)."""
+        stiffness = np.stack([np.full(self.length_m.shape, self.ea_n), self.tension_n])
+        fixed = self._waves(lam, stiffness)
+        if self.anchor_compliance is None:
+            return fixed
+        lam = np.ravel(lam)
+        f = self.anchor_compliance[..., None]                               # (2, n, 1)
+        ends = fixed[[0, 1]]
+        load = stiffness[..., None] * self.mass_per_length_kg_m * lam       # k mu lam
+        springs = (ends - load * f) / (1.0 + ends * f)
+        return np.stack([springs[0], fixed[1], springs[1]])
 
     def _waves(self, lam, stiffness) -> np.ndarray:
         """(stiffness/L) z cot z, z^2 = lam mu L^2 / stiffness, for ``stiffness`` (..., n) and
@@ -272,7 +289,8 @@ class ContinuousCables:
 
     def __call__(self, lam) -> np.ndarray:
         parts = self.parts(lam)
-        return axial_transverse(self.unit, parts[0].T, parts[1].T).astype(complex)
+        return axial_transverse(self.unit, parts[0].T, parts[1].T, self.normal,
+                                None if self.normal is None else parts[2].T).astype(complex)
 
     def fixed_end_fundamentals_rad_s(self) -> tuple[np.ndarray, np.ndarray]:
         """(axial, transverse) first fixed-fixed circular frequencies pi c / L of each cable.
@@ -308,11 +326,17 @@ class ContinuousCables:
 def build(cables: CableSet, elements_per_cable: int = 0) -> CableAssembly:
     """Exact continuous taut cables; ``elements_per_cable`` is ignored (recorded as 0)."""
     warnings = slack_warnings(cables.tension_n)
+    end = cables.anchor_end
+    compliance = normal = None
+    if end is not None:
+        compliance, normal = np.stack(end.compliance(cables.ea_n, cables.tension_n)), \
+            end.plane_normal
     members = ContinuousCables(cables.unit, cables.length_m,
                                np.asarray(cables.tension_n, dtype=float), float(cables.ea_n),
-                               cables.mass_per_length_kg_m)
+                               cables.mass_per_length_kg_m, anchor_compliance=compliance,
+                               normal=normal)
     if not members.mass_per_length_kg_m > 0.0:
         raise ValueError('dsm needs cables with mass (weight_per_length and gravity > 0)')
     return CableAssembly('dsm', 0, members, cables.tension_n[:, None] * cables.unit, None,
                          valid=not warnings, warnings=warnings,
-                         decoupled=AxialTransverse(members.unit, members.parts))
+                         decoupled=AxialTransverse(members.unit, members.parts, normal))

@@ -6,7 +6,11 @@ Each element of length l = L/n under the cable tension T has (Eq. 18, with G = u
         = EA/l [uu^T ...] + T/l [(I - uu^T) ...]                                  (N/m)
 
 and the consistent mass of Eq. 17, M_e = mu l / 6 [2I I; I 2I] with mu = gamma/g (kg/m).
-The anchor node is fixed and the last node moves with the platform attachment.
+The anchor node is fixed and the last node moves with the platform attachment. An anchor end
+(:class:`cdpr_dynamics.models.base.AnchorEnd`: pulley, winch-side cable) is a massless spring
+of compliance f between the anchor and the first element, along the cable and normal to the
+pulley plane: in series with that element, it lowers the first node's stiffness by
+delta = k (k f) / (1 + k f) in that direction (:func:`anchor_chain_end_stiffness`).
 
 Because the cable is straight and its tension uniform, axial and transverse motions decouple:
 the chain is a scalar tridiagonal chain in each direction, with element stiffness
@@ -38,6 +42,31 @@ import numpy as np
 
 from cdpr_dynamics.models.base import (AxialTransverse, CableAssembly, CableSet, ChainBlocks,
                                        axial_transverse, slack_warnings)
+
+
+def anchor_softening(k_element: np.ndarray, compliance: np.ndarray) -> np.ndarray:
+    """delta = k - (1/k + f)^-1 = k (k f)/(1 + k f): what a massless spring of compliance f
+    in series with an element of stiffness k takes off its stiffness (0 where f = 0)."""
+    kf = k_element * compliance
+    return k_element * kf / (1.0 + kf)
+
+
+def anchor_chain_end_stiffness(end: np.ndarray, k_element, m_element, delta,
+                               lam: np.ndarray) -> np.ndarray:
+    """End dynamic stiffness (..., nl) of uniform chains whose first node's stiffness is
+    lowered by ``delta`` (..., from :func:`anchor_softening`), from ``end`` (..., nl), the same
+    chains' :func:`chain_end_stiffness_last` with a fixed anchor.
+
+    The chain's recursion S_k = d11 - d12^2/(S_{k-1} + d11) is a Moebius map; the softened
+    first node S_1 = d11 - delta is the map of a grounding S_0 = d12^2/delta - d11, and n maps
+    of S_0 give (S_inf S_0 + d11^2 - d12^2) / (S_inf + S_0) with S_inf = ``end``, evaluated
+    with g = 1/S_0 (so S_inf itself where delta = 0)."""
+    k = np.asarray(k_element, dtype=float)[..., None]
+    c = lam * (np.asarray(m_element, dtype=float)[..., None] / 6.0)
+    d11, d12 = k - 2.0 * c, -k - c
+    delta = np.asarray(delta, dtype=float)[..., None]
+    g = delta / (d12 * d12 - delta * d11)
+    return (end - 3.0 * c * (2.0 * k - c) * g) / (end * g + 1.0)
 
 
 def chain_end_stiffness_recursive(k_element: np.ndarray, m_element: np.ndarray, n: int,
@@ -168,6 +197,9 @@ def build(cables: CableSet, elements_per_cable: int = 16,
     warnings = slack_warnings(cables.tension_n)
 
     blocks = uniform_chain_blocks(unit, k_axial, k_transverse, m_element, n)
+    if cables.anchor_end is not None:
+        return _with_anchor_end(cables, n, unit, k_axial, k_transverse, m_element, blocks,
+                                warnings)
     if reference:
         def end_stiffness(lam):
             axial = chain_end_stiffness_recursive(k_axial, m_element, n, lam)
@@ -181,5 +213,29 @@ def build(cables: CableSet, elements_per_cable: int = 16,
     m_both = np.empty_like(k_both)
     m_both[...] = m_element
     chains = AxialTransverse(unit, lambda lam: chain_end_stiffness_last(k_both, m_both, n, lam))
+    return CableAssembly('fem', n, chains.end_stiffness, cables.tension_n[:, None] * unit, blocks,
+                         valid=not warnings, warnings=warnings, decoupled=chains)
+
+
+def _with_anchor_end(cables: CableSet, n, unit, k_axial, k_transverse, m_element, blocks,
+                     warnings) -> CableAssembly:
+    """The fem assembly of chains with an anchor end: three scalar chains per cable (along
+    the cable, across it in the pulley plane, normal to the plane), the first node softened."""
+    end = cables.anchor_end
+    f_axial, f_normal = end.compliance(cables.ea_n, cables.tension_n)
+    k_three = np.stack([k_axial, k_transverse, k_transverse])              # (3, ncab)
+    m_three = np.empty_like(k_three)
+    m_three[...] = m_element
+    delta = np.stack([anchor_softening(k_axial, f_axial), np.zeros_like(k_transverse),
+                      anchor_softening(k_transverse, f_normal)])
+    k_diag = blocks.k_diag.copy()
+    k_diag[:, 0] -= axial_transverse(unit, delta[0], 0.0, end.plane_normal, delta[2])
+    blocks = blocks._replace(k_diag=k_diag)
+
+    def stiffness(lam):
+        fixed = chain_end_stiffness_last(k_three, m_three, n, lam)
+        return anchor_chain_end_stiffness(fixed, k_three, m_three, delta, np.asarray(lam))
+
+    chains = AxialTransverse(unit, stiffness, end.plane_normal)
     return CableAssembly('fem', n, chains.end_stiffness, cables.tension_n[:, None] * unit, blocks,
                          valid=not warnings, warnings=warnings, decoupled=chains)

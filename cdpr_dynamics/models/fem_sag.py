@@ -21,6 +21,11 @@ stiffness eliminates the chain from the anchor, element by element, in flexibili
 without its loss of about EA/T digits), vectorised over frequencies and cables. Cables without
 a taut catenary (slack, no solution) are replaced by a straight chain at a finite placeholder
 tension and the assembly is invalid with a warning.
+
+An anchor end (:class:`cdpr_dynamics.models.base.AnchorEnd`) is a massless spring in series
+with the first element (as in ``fem``): that element's stiffness K_1 becomes
+(K_1^-1 + F)^-1 (:func:`cdpr_dynamics.models.base.anchor_series`) in the matrices and in the
+recursion, which then starts from that element's general 3x3 flexibility.
 """
 from __future__ import annotations
 
@@ -30,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cdpr_dynamics.models import catenary
-from cdpr_dynamics.models.base import CableAssembly, CableSet, ChainBlocks
+from cdpr_dynamics.models.base import CableAssembly, CableSet, ChainBlocks, anchor_series
 
 
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))   # symmetric 3x3 as 6 components
@@ -150,8 +155,10 @@ def _series_planar(planar, axial, transverse, mass, lam) -> np.ndarray:
     return out.transpose(1, 0, 2).reshape(lam.size, basis.shape[0], 3, 3)
 
 
-def _series_3d(ee, axial, transverse, mass, lam) -> np.ndarray:
-    """:func:`series_end_stiffness` on the full symmetric 3x3 flexibility (6 components)."""
+def _series_3d(ee, axial, transverse, mass, lam, first=None) -> np.ndarray:
+    """:func:`series_end_stiffness` on the full symmetric 3x3 flexibility (6 components);
+    ``first`` (ncab, 3, 3): the anchor element's stiffness where it is not of the form
+    a e e^T + b (I - e e^T) (an anchor end in series)."""
     lam = np.asarray(lam).ravel()
     dtype = float if np.isrealobj(lam) else complex
     c = mass[:, None] * lam.astype(dtype)[None, :]                       # (ncab, nl)
@@ -159,11 +166,16 @@ def _series_3d(ee, axial, transverse, mass, lam) -> np.ndarray:
     axial_flexibility = 1.0 / (axial[:, None] + c)
     g = (0.0,) * 6
     for j in range(ee.shape[1]):
-        beta = 1.0 / (transverse[j][:, None] + c)
-        delta = axial_flexibility - beta
-        p = [g[k] + delta * ee[k, j][:, None] for k in range(6)]
-        for k in (0, 3, 5):
-            p[k] += beta
+        if j == 0 and first is not None:         # (K_1 + c I)^-1
+            q = [first[:, i, k][:, None] + (c if i == k else 0.0) for i, k in _UPPER]
+            adj, det = _sym_inverse_parts(q)
+            p = [v / det for v in adj]
+        else:
+            beta = 1.0 / (transverse[j][:, None] + c)
+            delta = axial_flexibility - beta
+            p = [g[k] + delta * ee[k, j][:, None] for k in range(6)]
+            for k in (0, 3, 5):
+                p[k] += beta
         q = [minus_6c * pk for pk in p]
         for k in (0, 3, 5):
             q[k] += 1.0
@@ -302,6 +314,14 @@ def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
     if n < 1:
         raise ValueError('fem_sag needs at least one element per cable')
     blocks, parts, state = _chains(cables, n)
+    first = None
+    if cables.anchor_end is not None:
+        ee, axial, transverse, _ = parts
+        element = axial[:, None, None] * ee[:, 0] + transverse[:, 0, None, None] * (_EYE - ee[:, 0])
+        first = anchor_series(element, cables)
+        k_diag = blocks.k_diag.copy()
+        k_diag[:, 0] += first - element
+        blocks = blocks._replace(k_diag=k_diag)
     warnings = tuple(state.reasons)
     if warnings:
         warnings += ('fem_sag: the cables above are modelled as straight chains at a placeholder '
@@ -316,6 +336,8 @@ def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
         lam = np.asarray(lam)
         if np.iscomplexobj(lam) and not np.any(lam.imag):
             lam = lam.real                   # undamped: the real recursion is twice as fast
+        if first is not None:
+            return _series_3d(*elements, lam, first).astype(complex, copy=False)
         return _series(planar, *elements, lam).astype(complex, copy=False)
 
     return CableAssembly('fem_sag', n, end_stiffness, -state.force_n, blocks,

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cdpr_dynamics import models
-from cdpr_dynamics.models.base import CableSet, axial_transverse
+from cdpr_dynamics.models.base import CableSet, anchor_series, axial_transverse
 from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.models.dsm import z_cot_z
 
@@ -199,7 +199,7 @@ def true_end_stiffness(sc: Scene, lam, sag_scale: float = 1.0,
         xy = ex[:, :, None] * ey[:, None, :]
         out += (coupling * axial)[..., None, None] * (xy + np.swapaxes(xy, -1, -2))
         out += (coupling * coupling * axial)[..., None, None] * (ey[:, :, None] * ey[:, None, :])
-    return out
+    return anchor_series(out, c, lam.ravel())
 
 
 def straight_end_stiffness(cables: CableSet, n: int | None, lam) -> np.ndarray:
