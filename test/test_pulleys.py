@@ -322,3 +322,17 @@ def test_dsm_with_an_anchor_end_is_the_limit_of_fem():
                      cables.weight_per_length_n_per_m, cables.gravity_m_s2)
     matrix_form = anchor_series(models.build('dsm', plain).end_stiffness(lam), cables, lam)
     assert_allclose(exact, matrix_form, rtol=1e-10, atol=1e-10 * np.abs(exact).max())
+
+
+@pytest.mark.parametrize('method,n', [('fem', 16), ('fem_sag', 6)])
+def test_counted_frequencies_with_pulleys_are_the_matrices_eigenvalues(method, n):
+    """The Wittrick-Williams count of chains with a softened anchor node finds the dense
+    eigenvalues of the same matrices (paper_pulleys, 0-40 Hz)."""
+    from cdpr_dynamics.dynamics.modes import natural_frequencies
+    s = load_settings(CONFIG / 'paper_pulleys.yaml')
+    system = pipeline.build_system(s, pipeline.equilibrium(s), method, n)
+    k, m = system.matrices(dense=True)
+    dense = np.sqrt(scipy.linalg.eigh(k, m, eigvals_only=True)) / (2 * np.pi)
+    dense = dense[dense <= 40.0]
+    assert dense.size > 20
+    assert_allclose(natural_frequencies(system, f_max_hz=40.0), dense, rtol=1e-8)

@@ -156,7 +156,8 @@ class PlatformSystem:
             congruence = self._congruence.T
         else:
             cables = assembly.decoupled
-            flat = cables.stiffness(lam).reshape(-1, lam.size)           # (2n or 3n, nl)
+            parts = cables.stiffness(lam)                                # (2 or 3, n, nl)
+            flat = parts.reshape(parts.shape[0] * parts.shape[1], lam.size)
             congruence = self._decoupled_congruence.T
         if not np.iscomplexobj(flat):
             return congruence @ flat

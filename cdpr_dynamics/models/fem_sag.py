@@ -317,7 +317,8 @@ def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
     first = None
     if cables.anchor_end is not None:
         ee, axial, transverse, _ = parts
-        element = axial[:, None, None] * ee[:, 0] + transverse[:, 0, None, None] * (_EYE - ee[:, 0])
+        ee0 = ee[:, 0]
+        element = axial[:, None, None] * ee0 + transverse[:, 0, None, None] * (_EYE - ee0)
         first = anchor_series(element, cables)
         k_diag = blocks.k_diag.copy()
         k_diag[:, 0] += first - element
