@@ -53,17 +53,14 @@ def _pulley_drawing(geo, robot, samples: int):
     centre, exit_m = pulleys.center_m, pulleys.exit_m
     radius = robot.pulley_radii_m[:, None, None]
     k = robot.pulley_axes[:, None, :]
-    e = np.zeros_like(centre)
-    i = robot.pulley_index
-    e[i] = (centre[i] - robot.anchors_m[i]) / robot.pulley_radii_m[i, None]
-    e = e[:, None, :]
+    e = pulleys.plane_m[:, None, :]
     angle = pulleys.wrap_rad[:, None] * np.linspace(1.0, 0.0, samples)[None, :]
     arcs = centre[:, None, :] + radius * (np.sin(angle)[..., None] * k
                                           - np.cos(angle)[..., None] * e)
     arcs[:, 0] = exit_m
     turn = np.linspace(0.0, 2.0 * np.pi, PULLEY_SEGMENTS + 1)[None, :, None]
     circles = centre[:, None, :] + radius * (np.sin(turn) * k - np.cos(turn) * e)
-    return arcs, circles[i]
+    return arcs, circles[robot.pulley_index]
 
 
 def robot_shape(eq, samples: int = 33, robot=None) -> RobotShape:

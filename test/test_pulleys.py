@@ -87,7 +87,7 @@ def test_exit_points_and_lengths_are_the_numerical_tangent_points():
     k /= np.linalg.norm(k, axis=1)[:, None]
     r = rng.uniform(0.02, 0.2, 6)
     a = d + rng.uniform(-2.0, 2.0, (6, 3))
-    exit_m, wrap, normal, centre, _ = pulley_exits(d, k, r, a)
+    exit_m, wrap, normal, centre, _, pivot = pulley_exits(d, k, r, a)
     for i in range(6):
         length, exit_ref, wrap_ref = tangent_exit(d[i], k[i], r[i], a[i])
         assert_allclose(r[i] * wrap[i] + np.linalg.norm(a[i] - exit_m[i]), length, atol=1e-9)
@@ -99,6 +99,9 @@ def test_exit_points_and_lengths_are_the_numerical_tangent_points():
         # the plane holds the swivel axis and the attachment
         assert abs(np.dot(normal[i], k[i])) < 1e-12
         assert abs(np.dot(normal[i], a[i] - d[i])) < 1e-12
+        # the span's line, extended back by the pivot c beyond the exit, meets the swivel axis
+        travel = (a[i] - exit_m[i]) / np.linalg.norm(a[i] - exit_m[i])
+        assert np.linalg.norm(np.cross(exit_m[i] - pivot[i] * travel - d[i], k[i])) < 1e-12
 
 
 def test_geometry_with_pulleys_reports_the_path_through_the_wrap():

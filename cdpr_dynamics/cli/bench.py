@@ -272,7 +272,10 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
                   settings, 2000 if quick else 20000),
               'node_pose_update': bench_node.pose_updates(
                   settings, NODE_METHODS, n=30 if quick else 300),
-              'replay': bench_replay(2.0 if quick else 20.0)}
+              'replay': bench_replay(2.0 if quick else 20.0),
+              'pulley_pose_update': bench_node.pulley_pose_updates(
+                  Path(default_config_path()).parent / 'paper_pulleys.yaml',
+                  n=30 if quick else 300)}
     if dds_config:
         result['dds'] = bench_node.dds(dds_config, rates=(1000, 5000) if quick else
                                        (1000, 2000, 3000, 5000, 8000),
@@ -333,6 +336,9 @@ def summary(result: dict) -> str:
     for method, row in result['node_pose_update'].items():
         lines.append(f"node pose update {method}: " + (row['error'] if 'error' in row else
                      f"p50/p99 {row['p50_ms']:.3f}/{row['p99_ms']:.3f} ms"))
+    for method, row in result['pulley_pose_update'].items():
+        lines.append(f"pose update with pulleys {method}: p50 {row['pulleys']['p50_ms']:.3f} ms, "
+                     f"without {row['none']['p50_ms']:.3f} ms (x{row['pulleys_over_none']:.2f})")
     for row in result['replay']:
         lines.append(f"cdpr_replay offline {row['method']} n={row['elements_per_cable']}: "
                      f"{row['messages_per_s']:.0f} messages/s ({row['times_real_time']:.0f}x "

@@ -143,6 +143,37 @@ def pose_updates(settings, methods=(('spring', 1), ('catenary', 1), ('fem', 16),
     return results
 
 
+PULLEY_KEYS = ('robot.pulley_axes', 'robot.pulley_radii_m', 'cable.winch_side_lengths_m')
+
+
+def pulley_pose_updates(config, methods=(('spring', 1), ('fem', 16)), n: int = 300) -> dict:
+    """Pose updates of the robot of ``config`` (with pulleys and winch-side cable) against the
+    same robot without them, interleaved pose by pose along the same circle, per method: the
+    p50s and their ratio (pulleys over none)."""
+    from cdpr_dynamics.analysis.config import read_params_file, settings_from_params
+    from cdpr_dynamics.analysis.live import LivePredictor
+
+    flat = read_params_file(config)
+    robots = {'pulleys': settings_from_params(flat),
+              'none': settings_from_params({k: v for k, v in flat.items()
+                                            if k not in PULLEY_KEYS})}
+    results = {}
+    for method, elements in methods:
+        predictors = {name: LivePredictor(s.replace(method=method, elements_per_cable=elements))
+                      for name, s in robots.items()}
+        seconds = {name: [] for name in predictors}
+        for k in range(n):
+            position = _circle(robots['none'], k, n)
+            for name, predictor in predictors.items():
+                start = time.perf_counter()
+                predictor.update_pose(position)
+                seconds[name].append(time.perf_counter() - start)
+        row = {name: _percentiles(values[10:]) for name, values in seconds.items()}
+        row['pulleys_over_none'] = row['pulleys']['p50_ms'] / row['none']['p50_ms']
+        results[f'{method}_n{elements}' if method == 'fem' else method] = row
+    return results
+
+
 # ------------------------------------------------------------------------------------ DDS
 
 def _ros_session(tag: str):

@@ -230,14 +230,24 @@ class PulleyState:
     """The pulleys at one pose, stacked over every cable (eyelets: exit at the anchor, zeros).
 
     ``exit_m`` (n, 3) the exit points B_i; ``wrap_rad`` (n,) the wrap angles beta_i;
-    ``swivel_rad`` (n,) each pulley plane's angle about its swivel axis (from
-    :attr:`Robot.pulley_references`); ``center_m`` (n, 3) the pulley centres.
+    ``center_m`` (n, 3) the pulley centres; ``plane_m`` (n, 3) the unit vectors e_i from each
+    swivel axis towards its attachment (zero for eyelets); :attr:`swivel_rad` each pulley
+    plane's angle about its swivel axis from ``references`` (:attr:`Robot.pulley_references`).
     """
 
     exit_m: np.ndarray
     wrap_rad: np.ndarray
-    swivel_rad: np.ndarray
     center_m: np.ndarray
+    plane_m: np.ndarray
+    axes: np.ndarray
+    references: np.ndarray
+
+    @functools.cached_property
+    def swivel_rad(self) -> np.ndarray:
+        """(n,) the swivel angles, atan2(e . (k x ref), e . ref); 0 for eyelets."""
+        e = self.plane_m
+        return np.arctan2(np.add.reduce(e * cross(self.axes, self.references), axis=-1),
+                          np.add.reduce(e * self.references, axis=-1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -279,60 +289,67 @@ class Geometry:
         return g
 
 
-def pulley_exits(anchors_m, axes, radii_m, attachments_m, references=None):
+def pulley_exits(anchors_m, axes, radii_m, attachments_m):
     """Exit points of swivelling pulleys (SPEC section 3), stacked over cables.
 
     The pulley plane holds the swivel axis k and the attachment A; its centre is
     C = D + r e (e the unit normal from the axis towards A); the cable runs along k into the
-    groove at D, wraps by beta and leaves at the tangent point B = C + r (-cos beta e +
-    sin beta k) towards A. In the plane (x along e, y along k, from C) with A at (x, y):
-    beta = pi/2 + atan2(r, s) - atan2(y, x), s = |A - B| = sqrt(x^2 + y^2 - r^2).
+    groove at D, wraps by beta and leaves at the tangent point B = C + r n towards A, with
+    n = (-cos beta, sin beta) in the plane's (e, k) axes. With A - C = (x, y) there, d^2 =
+    x^2 + y^2 and the free span s = sqrt(d^2 - r^2), n = (r x - s y, s x + r y) / d^2 (the
+    unit normal with n . (A - C) = r and the span leaving along the cable's travel), so
+    beta = pi - atan2(n_y, n_x) and the swivel pivot c = r tan(beta/2) = r n_y / (1 - n_x).
     Returns (exit B (n, 3), wrap beta (n,), plane normal m = k x e (n, 3), centre C (n, 3),
-    swivel angle (n,) of e from ``references`` or None); raises :class:`GeometryError` where an
-    attachment lies on a swivel axis or inside its pulley.
+    e (n, 3), pivot c (n,)); raises :class:`GeometryError` where an attachment lies on a
+    swivel axis or inside its pulley.
     """
     d, k, r = anchors_m, axes, radii_m
     v = attachments_m - d
-    along = np.add.reduce(v * k, axis=-1)
-    normal = v - along[:, None] * k
-    out = row_norm(normal)
+    y = np.add.reduce(v * k, axis=-1)
+    off_axis = v - y[:, None] * k
+    out = row_norm(off_axis)
     if out.min() < 1e-9:
         raise GeometryError(f'an attachment lies on the swivel axis of its pulley (cable '
                             f'{int(np.argmin(out))}): the pulley plane is undefined')
-    e = normal / out[:, None]
+    e = off_axis / out[:, None]
     x = out - r
-    span2 = x * x + along * along - r * r
+    d2 = x * x + y * y
+    span2 = d2 - r * r
     if span2.min() <= 0.0:
         raise GeometryError(f'an attachment lies inside its pulley (cable '
                             f'{int(np.argmin(span2))})')
-    wrap = np.mod(0.5 * np.pi + np.arctan2(r, np.sqrt(span2)) - np.arctan2(along, x),
-                  2.0 * np.pi)
+    s = np.sqrt(span2)
+    nx, ny = r * x - s * y, s * x + r * y                 # n d^2
+    wrap = np.pi - np.arctan2(ny, nx)
+    scale = r / d2
     centre = d + r[:, None] * e
-    exit_m = centre + r[:, None] * (np.sin(wrap)[:, None] * k - np.cos(wrap)[:, None] * e)
-    swivel = None
-    if references is not None:
-        swivel = np.arctan2(np.add.reduce(e * cross(k, references), axis=-1),
-                            np.add.reduce(e * references, axis=-1))
-    return exit_m, wrap, cross(k, e), centre, swivel
+    exit_m = centre + (scale * nx)[:, None] * e + (scale * ny)[:, None] * k
+    pivot = r * ny / (d2 - nx)
+    return exit_m, wrap, cross(k, e), centre, e, pivot
 
 
 def _pulley_span(robot: Robot, attach: np.ndarray):
     """(exit points over every cable, :class:`PulleyState`, :class:`AnchorEnd`, path
     lengths' wrapped part) of ``robot``'s pulleys for attachments ``attach`` (n, 3)."""
-    n = robot.n_cables
-    anchors = robot.anchors_m.copy()
-    wrap, swivel = np.zeros(n), np.zeros(n)
-    centre, normal, pivot = anchors.copy(), np.zeros((n, 3)), np.zeros(n)
     i = robot.pulley_index
-    if i is not None:
-        radius = robot.pulley_radii_m[i]
-        exit_i, wrap[i], normal[i], centre[i], swivel[i] = pulley_exits(
-            anchors[i], robot.pulley_axes[i], radius, attach[i], robot.pulley_references[i])
-        anchors[i] = exit_i
-        pivot[i] = radius * np.tan(0.5 * wrap[i])
-    wrapped = robot.pulley_radii_m * wrap
+    if i is None:                   # a winch side alone
+        n = robot.n_cables
+        end = AnchorEnd(robot.winch_side_lengths_m, np.zeros((n, 3)), np.zeros(n))
+        return robot.anchors_m, None, end, None
+    radius = robot.pulley_radii_m
+    if i.size == robot.n_cables:    # every cable over a pulley: no scatter
+        anchors, wrap, normal, centre, plane, pivot = pulley_exits(
+            robot.anchors_m, robot.pulley_axes, radius, attach)
+    else:
+        n = robot.n_cables
+        anchors, centre = robot.anchors_m.copy(), robot.anchors_m.copy()
+        wrap, pivot, normal, plane = np.zeros(n), np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3))
+        anchors[i], wrap[i], normal[i], centre[i], plane[i], pivot[i] = pulley_exits(
+            anchors[i], robot.pulley_axes[i], radius[i], attach[i])
+    wrapped = radius * wrap
     end = AnchorEnd(wrapped + robot.winch_side_lengths_m, normal, pivot)
-    state = None if i is None else PulleyState(anchors, wrap, swivel, centre)
+    state = PulleyState(anchors, wrap, centre, plane, robot.pulley_axes,
+                        robot.pulley_references)
     return anchors, state, end, wrapped
 
 
@@ -361,7 +378,7 @@ def geometry(robot: Robot, position_m, rotation=None) -> Geometry:
     anchors = robot.anchors_m
     if robot.has_anchor_ends:
         anchors, pulleys, anchor_end, wrapped = _pulley_span(
-            robot, np.broadcast_to(attach, robot.anchors_m.shape))
+            robot, attach if attach.ndim == 2 else attach + np.zeros(robot.anchors_m.shape))
     chord = anchors - attach
     length = row_norm(chord)
     if length.min() < 1e-6:

@@ -6,7 +6,7 @@ Adding a model means one file and one line in :data:`REGISTRY`.
 from __future__ import annotations
 
 from cdpr_dynamics.models import catenary, dsm, fem, fem_sag, spring
-from cdpr_dynamics.models.base import CableAssembly, CableSet, anchor_series, massless_assembly
+from cdpr_dynamics.models.base import CableAssembly, CableSet
 
 #: Models of straight cables: they ignore sag.
 STRAIGHT_METHODS = ('spring', 'fem', 'dsm')
@@ -22,15 +22,10 @@ REGISTRY = {
 
 
 def build(method: str, cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
-    """The :class:`CableAssembly` of ``method`` for ``cables``; a massless model's cables
-    with their anchor ends in series (:func:`anchor_series`), the others' by the model."""
+    """The :class:`CableAssembly` of ``method`` for ``cables`` (anchor ends included)."""
     try:
         builder = REGISTRY[method]
     except KeyError:
         raise ValueError(f'unknown cable model {method!r}; known: '
                          f'{", ".join(sorted(REGISTRY))}') from None
-    assembly = builder(cables, elements_per_cable)
-    if cables.anchor_end is None or assembly.constant_stiffness is None:
-        return assembly
-    return massless_assembly(assembly.method, anchor_series(assembly.constant_stiffness, cables),
-                             assembly.end_force_n, assembly.valid, assembly.warnings)
+    return builder(cables, elements_per_cable)

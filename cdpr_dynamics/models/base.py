@@ -51,8 +51,12 @@ class AnchorEnd(NamedTuple):
 
     def compliance(self, ea_n: float, tension_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(axial, out-of-plane) compliance of each anchor end (m/N), (n,) each."""
-        with np.errstate(divide='ignore', invalid='ignore'):
-            normal = np.where(self.pivot_m > 0, self.pivot_m / tension_n, 0.0)
+        tension_n = np.asarray(tension_n)
+        if tension_n.min() > 0.0:
+            normal = self.pivot_m / tension_n
+        else:                           # slack cables: no swivel compliance (invalid anyway)
+            with np.errstate(divide='ignore', invalid='ignore'):
+                normal = np.where(self.pivot_m > 0, self.pivot_m / tension_n, 0.0)
         return self.series_length_m / ea_n, normal
 
 

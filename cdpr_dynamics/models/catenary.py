@@ -24,8 +24,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cdpr_dynamics.models.base import (row_norm, CableAssembly, CableSet, axial_transverse,
-                                       massless_assembly)
+from cdpr_dynamics.models.base import (row_norm, CableAssembly, CableSet, anchor_series,
+                                       axial_transverse, massless_assembly)
 
 
 # --------------------------------------------------------------------------- closed forms
@@ -709,7 +709,8 @@ def build(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
         else:
             warnings.append(f'cable {i} is slack: tension {tension[i]:.3g} N at the platform '
                             f'cannot hold the {gamma * length[i]:.3g} N cable hanging below it')
-    return massless_assembly('catenary', _stiffness(f_h, f_v, length, cables, ok, parts),
+    stiffness = anchor_series(_stiffness(f_h, f_v, length, cables, ok, parts), cables)
+    return massless_assembly('catenary', stiffness,
                              tension[:, None] * planes.unit, valid, warnings)
 
 
@@ -751,6 +752,7 @@ def build_exact(cables: CableSet, elements_per_cable: int = 1) -> CableAssembly:
     """``catenary_exact``: Newton-consistent L0 and end force per cable (see :func:`solve`)."""
     state = state_of(cables)
     f_h, f_v = _in_plane(state.force_n, _planes(cables))
-    stiffness = _stiffness(f_h, f_v, state.unstrained_length_m, cables, state.valid)
+    stiffness = anchor_series(
+        _stiffness(f_h, f_v, state.unstrained_length_m, cables, state.valid), cables)
     return massless_assembly('catenary_exact', stiffness, -state.force_n,
                              bool(np.all(state.valid)), state.reasons)
