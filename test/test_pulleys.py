@@ -339,3 +339,42 @@ def test_counted_frequencies_with_pulleys_are_the_matrices_eigenvalues(method, n
     dense = dense[dense <= 40.0]
     assert dense.size > 20
     assert_allclose(natural_frequencies(system, f_max_hz=40.0), dense, rtol=1e-8)
+
+
+def suspended_three_cables(com=(0.0, 0.02, -0.2)):
+    """A suspended 3-cable robot: pulleys (22.5 mm) on the ceiling fed horizontally from
+    outside, a 6-DOF platform hanging below with its centre of mass below its attachments."""
+    angles = np.radians([90.0, 210.0, 330.0])
+    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros(3)], axis=1)
+    anchors = 1.0 * ring + [0.0, 0.0, 2.0]
+    flat = {'robot.anchors': anchors.ravel().tolist(),
+            'robot.attachments': (0.15 * ring).ravel().tolist(),
+            'robot.mass_kg': 8.0, 'robot.inertia_kg_m2': [0.1, 0.1, 0.15, 0.0, 0.0, 0.0],
+            'robot.center_of_mass_m': list(com),
+            'robot.initial_position': [0.05, 0.0, 0.9],
+            'robot.pulley_axes': (-ring).ravel().tolist(),
+            'robot.pulley_radii_m': [0.0225] * 3,
+            'cable.winch_side_lengths_m': [1.5] * 3,
+            'cable.area_m2': 1.0e-6, 'cable.youngs_modulus_pa': 1.0e11,
+            'cable.weight_per_length_n_per_m': 0.01,
+            'tension.min_n': 1.0, 'tension.max_n': 500.0, 'model.method': 'spring'}
+    return settings_from_params(flat)
+
+
+def test_suspended_underactuated_robot_with_pulleys():
+    """At the equilibrium the underactuated statics find (cable lengths from the winch kept),
+    the spring model's stiffness is the derivative of the balance, and the stability check's
+    loaded stiffness is the same matrix."""
+    from cdpr_dynamics.mechanics.underactuated import loaded_stiffness
+    s = suspended_three_cables()
+    eq = pipeline.equilibrium(s)
+    assert eq.geometry.pulleys is not None
+    assert np.abs(platform_wrench(s, eq, np.zeros(6))).max() < 1e-8
+    k = pipeline.build_system(s, eq, 'spring').static_stiffness()
+    h = 1e-6
+    jac = np.array([(platform_wrench(s, eq, h * e) - platform_wrench(s, eq, -h * e)) / (2 * h)
+                    for e in np.eye(6)]).T
+    assert np.all(np.abs(-jac - k).max(axis=0) < 1e-6 * np.abs(k).max(axis=0))
+    loaded = loaded_stiffness(s.robot, eq.geometry, eq.tensions.tension_n, s.cable.ea_n)
+    assert_allclose(loaded, k, rtol=0, atol=1e-9 * np.abs(k).max())
+    assert np.all(np.linalg.eigvalsh(k) > 0)

@@ -43,6 +43,7 @@ import numpy as np
 
 from cdpr_dynamics.mechanics.robot import (DOF_NAMES, Geometry, GeometryError, Robot, geometry,
                                            skew)
+from cdpr_dynamics.models.base import axial_transverse
 
 #: the pose is an equilibrium where |W^T T - w| is below this fraction of the weight
 BALANCE_RTOL = 1e-9
@@ -125,12 +126,14 @@ def balance_tensions(structure_matrix: np.ndarray, wrench: np.ndarray):
 def loaded_stiffness(robot: Robot, geo: Geometry, tension_n: np.ndarray,
                      ea_n: float | None = None) -> np.ndarray:
     """(d, d) stiffness of the platform on its cables and gravity (module docstring);
-    ``ea_n`` None: inextensible cables (no axial term: the geometric and load stiffness)."""
-    unit, length = geo.unit, geo.length_m
-    uu = unit[:, :, None] * unit[:, None, :]
-    per_cable = (tension_n / length)[:, None, None] * (np.eye(3) - uu)
-    if ea_n is not None:
-        per_cable = per_cable + (ea_n / length)[:, None, None] * uu
+    ``ea_n`` None: inextensible cables (no axial term: the geometric and load stiffness).
+    Pulleys and winch-side cable (``geo.anchor_end``) as the ``spring`` model takes them."""
+    unit, length, end = geo.unit, geo.length_m, geo.anchor_end
+    axial = 0.0 if ea_n is None else ea_n / (length if end is None
+                                             else length + end.series_length_m)
+    per_cable = axial_transverse(unit, axial, tension_n / length,
+                                 None if end is None else end.plane_normal,
+                                 None if end is None else tension_n / (length + end.pivot_m))
     g = geo.attachment_map()
     k = np.einsum('cia,cij,cjb->ab', g, per_cable, g)
     if not robot.point_mass:
@@ -192,7 +195,7 @@ class _Pose:
 def _restore(robot: Robot, pose: _Pose, lengths_m: np.ndarray) -> _Pose | None:
     """The pose moved back onto |l_i| = L_i by Gauss-Newton (least-norm steps), or None."""
     for _ in range(RESTORE_ITERATIONS):
-        miss = pose.geo.length_m - lengths_m
+        miss = pose.geo.cable_length_m - lengths_m
         if np.all(np.abs(miss) <= RESTORE_RTOL * lengths_m):
             return pose
         wt = pose.geo.structure_matrix                # dL/dq = -W: W dq = miss
@@ -235,7 +238,7 @@ def geometrico_static(robot: Robot, position_m, rotation=None,
     start = _Pose(robot, np.asarray(position_m, dtype=float).reshape(3),
                   np.eye(3) if rotation is None else np.asarray(rotation, dtype=float),
                   np.zeros(3))
-    lengths = start.geo.length_m.copy()
+    lengths = start.geo.cable_length_m.copy()
     weight = robot.mass_kg * np.asarray(robot.gravity_m_s2, dtype=float)
     round_off = 1e-13 * float(np.linalg.norm(weight + force)) * float(lengths.max())
     pose, iterations = start, 0
