@@ -5,6 +5,7 @@ and groove angles); the platform stiffness against finite differences of the sta
 with the exact pulley kinematics; the series springs against closed forms; the chain models'
 matrices against their own end stiffness; zero pulleys against the ideal robot.
 """
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -378,3 +379,13 @@ def test_suspended_underactuated_robot_with_pulleys():
     loaded = loaded_stiffness(s.robot, eq.geometry, eq.tensions.tension_n, s.cable.ea_n)
     assert_allclose(loaded, k, rtol=0, atol=1e-9 * np.abs(k).max())
     assert np.all(np.linalg.eigvalsh(k) > 0)
+
+
+def test_swivel_angle_of_a_vertical_pulley_is_the_azimuth_of_its_attachment():
+    s = suspended_three_cables()
+    robot = dataclasses.replace(s.robot, pulley_axes=np.tile([0.0, 0.0, -1.0], (3, 1)))
+    geo = geometry(robot, s.initial_position_m + [0.1, -0.05, 0.0], s.initial_rotation)
+    towards = geo.position_m + geo.lever_m - robot.anchors_m
+    # k = -z: the reference is x (z has no part across the axis); angles about -z
+    assert_allclose(geo.pulleys.swivel_rad, -np.arctan2(towards[:, 1], towards[:, 0]),
+                    atol=1e-12)
