@@ -179,6 +179,11 @@ class Robot:
         return out
 
     @functools.cached_property
+    def pulley_axes_cross(self) -> np.ndarray:
+        """(n, 3, 3) the cross-product matrices [k_i]x of the swivel axes."""
+        return skew(self.pulley_axes)
+
+    @functools.cached_property
     def has_anchor_ends(self) -> bool:
         """True when a pulley or a winch-side length lies in series with a free span."""
         return self.pulley_index is not None or bool(np.any(self.winch_side_lengths_m))
@@ -289,7 +294,7 @@ class Geometry:
         return g
 
 
-def pulley_exits(anchors_m, axes, radii_m, attachments_m):
+def pulley_exits(anchors_m, axes, radii_m, attachments_m, axes_cross=None):
     """Exit points of swivelling pulleys (SPEC section 3), stacked over cables.
 
     The pulley plane holds the swivel axis k and the attachment A; its centre is
@@ -301,7 +306,7 @@ def pulley_exits(anchors_m, axes, radii_m, attachments_m):
     beta = pi - atan2(n_y, n_x) and the swivel pivot c = r tan(beta/2) = r n_y / (1 - n_x).
     Returns (exit B (n, 3), wrap beta (n,), plane normal m = k x e (n, 3), centre C (n, 3),
     e (n, 3), pivot c (n,)); raises :class:`GeometryError` where an attachment lies on a
-    swivel axis or inside its pulley.
+    swivel axis or inside its pulley. ``axes_cross`` (n, 3, 3): the axes' [k]x, if at hand.
     """
     d, k, r = anchors_m, axes, radii_m
     v = attachments_m - d
@@ -325,7 +330,8 @@ def pulley_exits(anchors_m, axes, radii_m, attachments_m):
     centre = d + r[:, None] * e
     exit_m = centre + (scale * nx)[:, None] * e + (scale * ny)[:, None] * k
     pivot = r * ny / (d2 - nx)
-    return exit_m, wrap, cross(k, e), centre, e, pivot
+    normal = cross(k, e) if axes_cross is None else (axes_cross @ e[:, :, None])[:, :, 0]
+    return exit_m, wrap, normal, centre, e, pivot
 
 
 def _pulley_span(robot: Robot, attach: np.ndarray):
@@ -339,7 +345,7 @@ def _pulley_span(robot: Robot, attach: np.ndarray):
     radius = robot.pulley_radii_m
     if i.size == robot.n_cables:    # every cable over a pulley: no scatter
         anchors, wrap, normal, centre, plane, pivot = pulley_exits(
-            robot.anchors_m, robot.pulley_axes, radius, attach)
+            robot.anchors_m, robot.pulley_axes, radius, attach, robot.pulley_axes_cross)
     else:
         n = robot.n_cables
         anchors, centre = robot.anchors_m.copy(), robot.anchors_m.copy()

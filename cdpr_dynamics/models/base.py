@@ -30,6 +30,10 @@ def row_norm(x: np.ndarray) -> np.ndarray:
     return np.sqrt(np.add.reduce(x * x, axis=-1))
 
 
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
+
+
 class AnchorEnd(NamedTuple):
     """What lies between each cable's free span and its fixed end, stacked over cables.
 
@@ -187,7 +191,7 @@ def axial_transverse(unit: np.ndarray, axial: np.ndarray, transverse: np.ndarray
     uu = unit[:, :, None] * unit[:, None, :]
     axial = np.asarray(axial)[..., None, None]
     transverse = np.asarray(transverse)[..., None, None]
-    out = axial * uu + transverse * (np.eye(3) - uu)
+    out = axial * uu + transverse * (_EYE3 - uu)
     if normal is not None:
         mm = normal[:, :, None] * normal[:, None, :]
         out = out + (np.asarray(out_of_plane)[..., None, None] - transverse) * mm

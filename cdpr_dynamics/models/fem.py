@@ -220,21 +220,26 @@ def build(cables: CableSet, elements_per_cable: int = 16,
 def _with_anchor_end(cables: CableSet, n, unit, k_axial, k_transverse, m_element, blocks,
                      warnings) -> CableAssembly:
     """The fem assembly of chains with an anchor end: three scalar chains per cable (along
-    the cable, across it in the pulley plane, normal to the plane), the first node softened."""
+    the cable, across it in the pulley plane, normal to the plane), the first node softened
+    (in place in ``blocks``, which are the caller's fresh arrays)."""
     end = cables.anchor_end
     f_axial, f_normal = end.compliance(cables.ea_n, cables.tension_n)
-    k_three = np.stack([k_axial, k_transverse, k_transverse])              # (3, ncab)
-    m_three = np.empty_like(k_three)
-    m_three[...] = m_element
-    delta = np.stack([anchor_softening(k_axial, f_axial), np.zeros_like(k_transverse),
-                      anchor_softening(k_transverse, f_normal)])
-    k_diag = blocks.k_diag.copy()
-    k_diag[:, 0] -= axial_transverse(unit, delta[0], 0.0, end.plane_normal, delta[2])
-    blocks = blocks._replace(k_diag=k_diag)
+    k_both = np.empty((2,) + k_transverse.shape)          # (2, n): axial, transverse
+    k_both[0], k_both[1] = k_axial, k_transverse
+    m_both = np.empty_like(k_both)
+    m_both[...] = m_element
+    delta = np.empty_like(k_both)                         # along the cable, normal to the plane
+    delta[0] = anchor_softening(k_axial, f_axial)
+    delta[1] = anchor_softening(k_transverse, f_normal)
+    normal = end.plane_normal
+    uu = unit[:, :, None] * unit[:, None, :]
+    mm = normal[:, :, None] * normal[:, None, :]
+    blocks.k_diag[:, 0] -= delta[0][:, None, None] * uu + delta[1][:, None, None] * mm
 
     def stiffness(lam):
-        fixed = chain_end_stiffness_last(k_three, m_three, n, lam)
-        return anchor_chain_end_stiffness(fixed, k_three, m_three, delta, np.asarray(lam))
+        fixed = chain_end_stiffness_last(k_both, m_both, n, lam)      # (2, ncab, nl)
+        softened = anchor_chain_end_stiffness(fixed, k_both, m_both, delta, np.asarray(lam))
+        return np.stack([softened[0], fixed[1], softened[1]])
 
     chains = AxialTransverse(unit, stiffness, end.plane_normal)
     return CableAssembly('fem', n, chains.end_stiffness, cables.tension_n[:, None] * unit, blocks,
