@@ -102,17 +102,19 @@ PARAMETERS: tuple[Param, ...] = (
     Param('model.tolerance', 0.01, 'relative error allowed to method auto', 1e-9, 1.0),
     Param('model.max_dofs', 600, 'compute budget of method auto: the largest DOF count it may '
           'pick', 3, 1000000),
-    Param('damping.mass_factor', 0.05, 'Rayleigh factor delta_M of C = dM M + dK K (1/s)',
-          0.0, 1e6),
-    Param('damping.stiffness_factor', 0.05, 'Rayleigh factor delta_K of C = dM M + dK K (s)',
-          0.0, 1e3),
-    Param('damping.modal_ratio', 0.0, 'if > 0: Rayleigh factors fitted to this modal damping '
-          'ratio at the lowest and highest platform modes, overriding the factors', 0.0, 10.0),
+    Param('damping.mass_factor', 0.0, 'Rayleigh factor delta_M of C = dM M + dK K (1/s); '
+          'used where damping.modal_ratio is 0', 0.0, 1e6),
+    Param('damping.stiffness_factor', 0.0, 'Rayleigh factor delta_K of C = dM M + dK K (s); '
+          'used where damping.modal_ratio is 0', 0.0, 1e3),
+    Param('damping.modal_ratio', 0.02, 'modal damping ratio: Rayleigh factors fitted to it at '
+          'the lowest and highest platform modes (2 %: light damping as of steel wire rope or '
+          'fibre cables); 0 to give damping.mass_factor and damping.stiffness_factor instead',
+          0.0, 10.0),
     Param('frf.f_min_hz', 1.0, 'lowest frequency of the sweep (Hz)', 0.0, 1e6),
     Param('frf.f_max_hz', 40.0, 'highest frequency of the sweep (Hz)', 1e-6, 1e6),
     Param('frf.n_points', 391, 'frequencies in the sweep', 1, 1000000),
-    Param('frf.force_n', [0.0, 0.0, 1500.0], 'harmonic force amplitude on the platform (N)',
-          length=3),
+    Param('frf.force_n', [0.0, 0.0, 1.0], 'harmonic force amplitude on the platform (N); a '
+          'unit force gives the FRF per newton', length=3),
     Param('frf.moment_nm', [0.0, 0.0, 0.0], 'harmonic moment amplitude on the platform (N m)',
           length=3),
     Param('frf.point_m', [0.0, 0.0, 0.0], 'point whose FRF and time history are reported '
@@ -559,6 +561,11 @@ def _check_settings(s: Settings) -> None:
                           f'{s.tension_max_n}')
     if s.f_min_hz > s.f_max_hz:
         raise ConfigError(f'frf.f_min_hz = {s.f_min_hz} exceeds frf.f_max_hz = {s.f_max_hz}')
+    rayleigh = s.damping_mass_factor > 0 or s.damping_stiffness_factor > 0
+    if s.damping_modal_ratio > 0 and rayleigh:
+        raise ConfigError(f'damping.modal_ratio = {s.damping_modal_ratio:g} and Rayleigh factors '
+                          f'both given: set damping.modal_ratio to 0 to use '
+                          f'damping.mass_factor and damping.stiffness_factor')
     if s.method not in METHODS:
         raise ConfigError(f'model.method must be one of {", ".join(METHODS)}; got {s.method!r}')
     if s.elements_per_cable < 1:
