@@ -25,6 +25,8 @@ from cdpr_dynamics.analysis.config import (MAX_CONFIG_BYTES, MAX_CONFIG_DEPTH, M
                                            NODE_PARAMETERS, PARAMETER_BY_NAME, PARAMETERS,
                                            ConfigError, check_names, key_matches, load_settings,
                                            read_params_file, settings_from_params)
+from cdpr_dynamics.analysis.pipeline import build_system, equilibrium
+from cdpr_dynamics.dynamics.system import configured_damping, platform_frequencies
 from cdpr_dynamics.ros.parameters import check_command_line as _check_command_line
 from conftest import PAPER_CONFIG, REPO, installed, wait_until, write_config
 
@@ -88,18 +90,26 @@ def test_inertia_is_required_for_a_rigid_platform_only(tmp_path):
 
 
 def test_numerical_settings_keep_their_documented_defaults(tmp_path):
+    """A robot that sets no numerical section gets light damping (a 2 % modal ratio, no
+    Rayleigh factors of its own) and a unit FRF force; the paper's heavy damping and 1500 N
+    load are in its file only, the sweep and Newmark settings are the paper's."""
     doc = yaml.safe_load(paper_text())
     params = doc['/**']['ros__parameters']
     for section in NUMERICAL_SECTIONS:
         del params[section]
     config = write(tmp_path, yaml.safe_dump(doc))
     s = load_settings(config)
-    paper = load_settings(PAPER_CONFIG)     # the paper file states the documented defaults
-    for field in ('method', 'elements_per_cable', 'tolerance', 'damping_mass_factor',
-                  'damping_stiffness_factor', 'damping_modal_ratio', 'f_min_hz', 'f_max_hz',
-                  'n_points', 'newmark_alpha', 'newmark_beta', 'dt_s'):
+    paper = load_settings(PAPER_CONFIG)
+    for field in ('method', 'elements_per_cable', 'f_min_hz', 'f_max_hz', 'n_points',
+                  'newmark_alpha', 'newmark_beta', 'dt_s'):
         assert getattr(s, field) == getattr(paper, field), field
-    assert np.array_equal(s.frf_force_n, paper.frf_force_n)
+    assert (s.damping_modal_ratio, s.damping_mass_factor, s.damping_stiffness_factor) == \
+        (0.02, 0.0, 0.0)
+    assert (paper.damping_modal_ratio, paper.damping_mass_factor,
+            paper.damping_stiffness_factor) == (0.0, 0.05, 0.05)
+    assert s.tolerance == 0.01
+    assert np.array_equal(s.frf_force_n, [0.0, 0.0, 1.0])
+    assert np.array_equal(paper.frf_force_n, [0.0, 0.0, 1500.0])
     assert s.max_dofs == 600
     for param in PARAMETERS + NODE_PARAMETERS:
         section = param.name.split('.')[0]
@@ -565,3 +575,46 @@ def test_ctrl_c_during_the_imports_ends_a_tool_with_one_line(ros_env, tmp_path, 
     said = [line for line in lines if not line.startswith('import time:')]
     assert proc.returncode == 130, (proc.returncode, said[-20:])
     assert said == [f'{tool}: interrupted'], said[-20:]
+
+
+def test_readme_documents_every_parameter():
+    text = (REPO / 'README.md').read_text()
+    section = text[text.index('## Configuration'):text.index('## How the numerics work')]
+    rows = {line.split('|')[1].strip().strip('`'): line for line in section.splitlines()
+            if line.startswith('| `')}
+    for param in PARAMETERS + NODE_PARAMETERS:
+        assert param.name in rows, f'README Configuration table lacks {param.name}'
+        assert ('**required**' in rows[param.name]) == param.required, param.name
+        if param.default not in (None, []):
+            assert f'| `{param.default}` |' in rows[param.name], param.name
+
+
+def test_a_modal_ratio_beside_rayleigh_factors_is_a_one_line_error(tmp_path):
+    """Both damping forms given (e.g. factors set on top of the default 2 % ratio) would let
+    one silently win: it is an error that says how to choose."""
+    with pytest.raises(ConfigError, match=r'^damping.modal_ratio = 0.02 and Rayleigh factors '
+                                          r'both given: set damping.modal_ratio to 0') as err:
+        load_settings(write_config(tmp_path, **{'damping.modal_ratio': 0.02,
+                                                'damping.mass_factor': 0.0,
+                                                'damping.stiffness_factor': 0.01}))
+    assert '\n' not in str(err.value)
+    paper = load_settings(PAPER_CONFIG)
+    with pytest.raises(ConfigError, match='damping.modal_ratio = 0.03'):
+        paper.replace(damping_modal_ratio=0.03)
+
+
+def test_the_default_damping_is_two_percent_at_the_lowest_and_highest_platform_modes(tmp_path):
+    """The default fits Rayleigh factors to zeta = 2 % at the lowest and highest platform mode
+    of the band: zeta(w) = dM / (2 w) + dK w / 2 there, less in between."""
+    s = load_settings(write_config(tmp_path, **{'damping.modal_ratio': None,
+                                                'damping.mass_factor': None,
+                                                'damping.stiffness_factor': None,
+                                                'model.method': 'spring'}))
+    system = build_system(s, equilibrium(s))
+    damping = configured_damping(s, system)
+    freqs = platform_frequencies(system)
+    band = freqs[(freqs > 0) & (freqs <= s.f_max_hz)]
+    w = 2 * np.pi * np.array([band[0], band[-1]])
+    np.testing.assert_allclose(damping.mass_factor / (2 * w) + damping.stiffness_factor * w / 2,
+                               0.02, rtol=1e-12)
+    assert damping.mass_factor > 0 and damping.stiffness_factor > 0

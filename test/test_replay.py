@@ -875,3 +875,34 @@ def test_slack_aware_replay_gives_the_analyze_numbers(tmp_path):
     assert np.abs(replayed - expected.u[:, :3]).max() <= 1e-12 * peak
     linear = harmonic_history(settings, 5.0, steps * dt_ns * 1e-9, slack='linear')
     assert np.abs(replayed - linear.u[:, :3]).max() > 0.1 * peak
+
+
+def test_a_replay_that_lacks_the_pose_before_a_wrench_says_so(tmp_path):
+    """A recording that missed the pose the live node had (published before the recorder
+    subscribed) replays at robot.initial_position: the replay warns, naming the pose topic,
+    with how many predictions it concerns; a file with a pose first has no warning."""
+    settings, options = golden_settings()
+
+    def replay(poses_from: int | None, name: str):
+        path = tmp_path / f'{name}.mcap'
+        with RecordingWriter(path) as writer:
+            writer.add_topic('/pose', POSE)
+            writer.add_topic('/wrench', WRENCH)
+            for k in range(5):
+                t = scenarios.T0_NS + k * 10**7
+                if poses_from is not None and k >= poses_from:
+                    writer.write('/pose', pose_message([0.0, 0.0, 1.25], [0.0, 0.0, 0.0, 1.0],
+                                                       'world', stamp_msg(t)), t)
+                writer.write('/wrench', wrench_message([0.0, 0.0, 5.0], stamp=stamp_msg(t + 1)),
+                             t + 1)
+        return replay_offline(path, tmp_path / f'{name}_out.mcap', settings, options=options)
+
+    assert replay(0, 'pose_first').warnings == []
+    late, = replay(3, 'pose_late').warnings
+    assert late.startswith('3 of 5 wrench(es) came before the first pose on /pose: ')
+    missing, = replay(None, 'no_pose').warnings
+    assert missing.startswith('no pose on /pose: ') and 'robot.initial_position' in missing
+    done = replay_cli(tmp_path / 'pose_late.mcap', '--output', tmp_path / 'cli.mcap',
+                      *GOLDEN_ARGS, '--no-progress')
+    assert done.returncode == 0, done.stderr
+    assert f'cdpr_replay: warning: {late}' in done.stderr.splitlines()

@@ -6,8 +6,8 @@ from scipy.optimize import linprog, lsq_linear
 
 from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.mechanics.robot import Robot, geometry, required_wrench
-from cdpr_dynamics.mechanics.tensions import (TensionSolver, closest_tensions, solve_tensions,
-                                              solve_tensions_qpsolvers)
+from cdpr_dynamics.mechanics.tensions import (TensionSolver, below_text, closest_tensions,
+                                              solve_tensions, solve_tensions_qpsolvers)
 
 T_MIN, T_MAX = 100.0, 1000.0
 TOL = 1e-4       # N (and N m): TensionSolver's default tolerance for T_max = 1000 N
@@ -376,3 +376,12 @@ def test_equal_bounds_pin_every_tension(paper):
     assert result.feasible, result.reason
     assert_allclose(result.tension_n, 300.0, atol=1e-9)
     assert not solve_tensions(wt, pinned + [0.0, 0.0, 1.0], 300.0, 300.0).feasible
+
+
+@pytest.mark.parametrize('value, bound, text', [(9.98, 10.0, '9.98'), (6.94, 20.0, '6.9'),
+                                                (9.99996, 10.0, '9.99996'), (-0.04, 0.0, '-0.04'),
+                                                (99.95001, 100.0, '99.95')])
+def test_a_tension_below_its_bound_never_prints_as_the_bound(value, bound, text):
+    """'drops to 10.0 N, below tension.min_n' for 9.98 N contradicted itself."""
+    assert below_text(value, bound) == text
+    assert float(text) < bound

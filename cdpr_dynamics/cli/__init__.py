@@ -10,8 +10,20 @@ from __future__ import annotations
 import functools
 import importlib
 import os
+import re
 import signal
 import sys
+
+_ROLE = re.compile(r':[a-z]+:`~?(?:[\w.]+\.)?([^`]+)`')     # :func:`~a.b.name` -> name
+_LITERAL = re.compile(r'``([^`]+)``|`([^`]+)`|\*\*([^*]+)\*\*')
+
+
+def plain(text: str) -> str:
+    """``text`` (a docstring's line) without reStructuredText markup, for ``--help``:
+    roles give their target's last name, literals and bold their text."""
+    text = _ROLE.sub(r'\1', text)
+    return _LITERAL.sub(lambda m: next(g for g in m.groups() if g is not None), text)
+
 
 #: Exit status after Ctrl-C (128 + SIGINT), as shells report it.
 INTERRUPTED_STATUS = 128 + signal.SIGINT

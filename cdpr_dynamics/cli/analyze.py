@@ -26,12 +26,13 @@ from cdpr_dynamics.analysis.pipeline import (AnalysisError, Equilibrium, Stopwat
                                              equilibrium_for, equilibrium_summary, frf_arrays,
                                              geometry_summary, model_warnings, point_displacement,
                                              receptance, safe, system_modes)
-from cdpr_dynamics.cli import interruptible
+from cdpr_dynamics.cli import interruptible, plain
 from cdpr_dynamics.analysis.config import METHODS, ConfigError, Settings, load_settings
 from cdpr_dynamics.dynamics.system import tension_change, time_history
 from cdpr_dynamics.models.catenary import sag_parameter
 from cdpr_dynamics.dynamics.modes import modes
 from cdpr_dynamics.mechanics.robot import DOF_NAMES
+from cdpr_dynamics.mechanics.tensions import below_text
 from cdpr_dynamics.selection.auto import accuracy_warnings, choose_model
 from cdpr_dynamics.analysis.controller import controller_document, controller_lines
 from cdpr_dynamics.analysis.live import harmonic_history
@@ -96,7 +97,8 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
                                     'response is not valid')
                 elif min_tension < settings.tension_min_n:
                     warnings.append(f'{f_exc:g} Hz time history: tension drops to '
-                                    f'{min_tension:.1f} N, below tension.min_n')
+                                    f'{below_text(min_tension, settings.tension_min_n)} N, '
+                                    f'below tension.min_n {settings.tension_min_n:g} N')
                 histories.append({'excitation_hz': float(f_exc), 't_s': th.t_s.tolist(),
                                   'u_m': u_point.tolist(), 'min_tension_n': min_tension,
                                   'slack': bool(slack),
@@ -237,7 +239,7 @@ def _plot(documents: list[dict], plot_dir: Path, settings: Settings, eq: Equilib
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='cdpr_analyze', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='cdpr_analyze', description=plain(__doc__.split('\n')[0]))
     parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
     parser.add_argument('--method', nargs='+', choices=METHODS,
                         help='cable model(s); the first fills the top level of the JSON')

@@ -27,7 +27,7 @@ import numpy as np
 
 from cdpr_dynamics.analysis.pipeline import (AnalysisError, build_system, damping_for, equilibrium,
                                              equilibrium_for, new_tension_solver)
-from cdpr_dynamics.cli import bench_node, interruptible
+from cdpr_dynamics.cli import bench_node, interruptible, plain
 from cdpr_dynamics.analysis.config import ConfigError, Settings, default_config_path, load_settings
 from cdpr_dynamics.dynamics.system import DynamicsError, frequency_response, time_history
 from cdpr_dynamics.mechanics.robot import geometry, required_wrench
@@ -392,7 +392,7 @@ def _cpu_text(ctl: dict) -> str:
 
 @interruptible('cdpr_bench')
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog='cdpr_bench', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='cdpr_bench', description=plain(__doc__.split('\n')[0]))
     parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
     parser.add_argument('--quick', action='store_true', help='few repetitions (CI smoke run)')
     parser.add_argument('--json', type=Path, help='write the results to this JSON file')

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cdpr_dynamics.mechanics.tensions import below_text
+
 
 @dataclass(frozen=True)
 class Received:
@@ -59,7 +61,8 @@ class TensionEstimate:
                     f'{cable} at {at:.2f} s), a cable slack {slack.any(axis=1).mean():.0%} of '
                     'the time (the linear prediction does not hold while a cable is slack)')
         if low < self.tension_min_n:
-            return (f'no cable slackens, but cable {cable} dips to {low:.1f} N at {at:.2f} s, '
+            return (f'no cable slackens, but cable {cable} dips to '
+                    f'{below_text(low, self.tension_min_n)} N at {at:.2f} s, '
                     f'below tension.min_n {self.tension_min_n:g} N')
         return f'no cable slackens: lowest tension {low:.1f} N (cable {cable} at {at:.2f} s)'
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cdpr_dynamics.analysis.pipeline import AnalysisError, equilibrium
-from cdpr_dynamics.cli import interruptible
+from cdpr_dynamics.cli import interruptible, plain
 from cdpr_dynamics.analysis.config import ConfigError, load_settings
 from cdpr_dynamics.dynamics.system import DynamicsError
 from cdpr_dynamics.selection.estimates import Estimator
@@ -91,7 +91,7 @@ def markdown(entries: list[Entry]) -> str:
 @interruptible('estimate_table')
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='python -m cdpr_dynamics.cli.estimate_table',
-                                     description=__doc__.split('\n')[0])
+                                     description=plain(__doc__.split('\n')[0]))
     parser.add_argument('configs', nargs='*', help='robots (default: the four of the table)')
     args = parser.parse_args(argv)
     entries = []

@@ -136,6 +136,8 @@ def _offline(args) -> int:
     bar.close()
     for line in summary_lines(summary):
         print(f'{PROG}: {line}', flush=True)
+    for line in summary.warnings:
+        print(f'{PROG}: warning: {line}', file=sys.stderr, flush=True)
     return 0
 
 

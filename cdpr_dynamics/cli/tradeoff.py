@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.analysis.pipeline import AnalysisError, equilibrium
-from cdpr_dynamics.cli import interruptible
+from cdpr_dynamics.cli import interruptible, plain
 from cdpr_dynamics.analysis.config import ConfigError, load_settings
 from cdpr_dynamics.dynamics.system import DynamicsError
 from cdpr_dynamics.selection.estimates import Estimator
@@ -124,7 +124,7 @@ def summary(rows: list[dict], reference) -> str:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='cdpr_tradeoff', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='cdpr_tradeoff', description=plain(__doc__.split('\n')[0]))
     parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
     parser.add_argument('--f-max', type=float, help='top of the band (Hz; default frf.f_max_hz)')
     parser.add_argument('--tolerance', type=float,

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdpr_dynamics.cli import interruptible
+from cdpr_dynamics.cli import interruptible, plain
 from cdpr_dynamics.analysis.config import (METHODS, ConfigError, default_config_path,
                                            read_params_file, settings_from_params)
 from cdpr_dynamics.analysis.workspace import (DEFAULT_CHUNK, WorkspaceError, axis_values,
@@ -55,7 +55,7 @@ CONNECT_TIMEOUT_S = 20
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog=PROG, description=plain(__doc__.split('\n')[0]))
     parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
     for axis in 'xyz':
         parser.add_argument(f'--{axis}', nargs=3, type=float, metavar=(f'{axis.upper()}0',

@@ -98,6 +98,16 @@ def _fmt(v) -> str:
     return '[' + ', '.join(f'{x:.4g}' for x in np.asarray(v, dtype=float).tolist()) + ']'
 
 
+def below_text(value: float, bound: float, digits: int = 1) -> str:
+    """``value`` (< ``bound``) with at least ``digits`` decimals and as many more as it takes
+    to print below ``bound`` ('9.98' for 9.98 under 10, never '10.0')."""
+    for d in range(digits, 16):
+        text = f'{value:.{d}f}'
+        if float(text) < bound:
+            return text
+    return repr(float(value))
+
+
 def _box(n_cables: int, t_min_n: float, t_max_n: float) -> tuple[float, float]:
     """The tension bounds (N) as floats, checked: finite and T_min <= T_max."""
     if n_cables < 1:

@@ -102,6 +102,7 @@ class RecordingSummary:
     end_ns: int
     complete: bool = True   # summary and footer written (False: cut at the last whole chunk)
     error: str | None = None  # why writing stopped early (a full disk), one line
+    warnings: tuple = ()      # one line each: topics whose messages the file may lack
 
 
 # ----------------------------------------------------------------------------- types

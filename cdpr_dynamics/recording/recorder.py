@@ -8,6 +8,11 @@ their oldest message is ``chunk_interval_s`` old, whichever comes first, so a re
 outright loses at most about the last second, and a disk that fills leaves a finished file of
 every chunk written before.
 
+Messages published before the recorder subscribed are not in the file (DDS delivers a late
+subscriber only what transient-local publishers keep): at close the recorder warns, naming the
+topic, where a subscribed topic got no message, or where the first message of a topic's only
+publisher was not its first (its publication sequence number says how many came before).
+
 Timestamps: ``log_time`` is the receive time on the recorder node's clock; ``publish_time`` the
 publisher's send time (the DDS source timestamp, as rosbag2 records it), or the receive time
 where the middleware gives none. Header stamps stay in the messages.
@@ -34,7 +39,7 @@ _DRAIN_BATCHES = 64  # at most this many batches per topic taken on close (16384
 
 class _Topic:
     __slots__ = ('name', 'wanted_type', 'type', 'channel_id', 'subscription', 'count',
-                 'qos', 'type_hash', 'warned')
+                 'qos', 'type_hash', 'warned', 'first_sequence')
 
     def __init__(self, name: str, wanted_type: str | None):
         self.name = name
@@ -46,6 +51,7 @@ class _Topic:
         self.qos = []
         self.type_hash = ''
         self.warned = False
+        self.first_sequence = 0   # publication sequence number of the first message written
 
 
 #: Depth of each subscription: 1 s of a 1 kHz topic, so a recorder that falls behind for a
@@ -223,6 +229,8 @@ class Recorder:
                                           sent if sent > 0 else now, sequence & 0xFFFFFFFF):
                 self._check_file()
                 return
+            if topic.count == 0:
+                topic.first_sequence = sequence
             topic.count += 1
             mono = time.monotonic_ns()
             if self._file.chunk_count != chunks:    # closed by its size: nothing unwritten
@@ -338,8 +346,26 @@ class Recorder:
             self._summary = RecordingSummary(
                 path=self.path, message_count=sum(topics.values()), bytes=self._file.bytes,
                 chunk_count=self._file.chunk_count, topics=topics, start_ns=start_ns,
-                end_ns=end_ns, complete=self._file.complete, error=self.error)
-            return self._summary
+                end_ns=end_ns, complete=self._file.complete, error=self.error,
+                warnings=tuple(self._missed()))
+        for line in self._summary.warnings:
+            self._node.get_logger().warning(line)
+        return self._summary
+
+    def _missed(self):
+        """One line per subscribed topic whose early messages the file may lack."""
+        for t in self._topics.values():
+            if t.subscription is None:
+                continue                      # no publisher appeared: nothing was missed
+            latched = bool(t.qos) and all(q['durability'] == 'transient_local' for q in t.qos)
+            kept = ' (its publishers keep only their last messages for late subscribers)' \
+                if latched else ''
+            if t.count == 0:
+                yield (f'{t.name}: no message recorded although it has a publisher; a message '
+                       f'published before the recorder subscribed is not in the file{kept}')
+            elif len(t.qos) == 1 and t.first_sequence > 1:
+                yield (f'{t.name}: the first {t.first_sequence - 1} message(s) of its publisher '
+                       f'came before the recorder subscribed and are not in the file{kept}')
 
     def __enter__(self):
         return self

@@ -236,6 +236,21 @@ class ReplaySummary:
     messages_written: int = 0
     bytes: int = 0
     elapsed_s: float = 0.0
+    before_first_pose: int = 0  # wrenches predicted before any pose was accepted
+
+    @property
+    def warnings(self) -> list[str]:
+        """One line each where the input lacks what the prediction needs: predictions made
+        before any pose (at ``robot.initial_position``, where the live node may have had a
+        pose the recording missed: one published before the recorder subscribed)."""
+        if not self.before_first_pose:
+            return []
+        where = (f'no pose on {self.pose_topic}' if not self.poses_accepted else
+                 f'{self.before_first_pose} of {self.wrenches_accepted} wrench(es) came before '
+                 f'the first pose on {self.pose_topic}')
+        return [f'{where}: those predictions are at robot.initial_position; if the live node '
+                f'had a pose then (one published before the recorder subscribed), the replay '
+                f'differs from the live run']
 
     @property
     def inputs(self) -> int:
@@ -345,6 +360,7 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
                                  t, t)
                 else:
                     summary.wrenches_accepted += 1
+                    summary.before_first_pose += not summary.poses_accepted
                     out = predictor.prediction(options.output_point_m)
                     writer.write(displacement_topic, displacement_message(
                         out.displacement_m, frame_id, msg.header.stamp), t, t)
