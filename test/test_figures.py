@@ -203,8 +203,16 @@ def test_mode_panels_draw_the_mode_shape_times_the_scale(config, n, tmp_path):
             biggest = max(biggest, np.linalg.norm(pts - np.array(
                 [attachments[c] + (anchors[c] - attachments[c]) * t
                  for t in np.linspace(0, 1, len(pts))]), axis=1).max())
-        # the largest drawn displacement is the stated fraction of the frame size
-        assert biggest == pytest.approx(figures.MODE_SCALE_FRACTION * size, rel=1e-9)
+        # a cable mode's largest drawn displacement is the stated fraction of the frame size;
+        # a platform mode's platform moves by it, its cables by at most the cap
+        platform = np.linalg.norm(scale * (u + np.cross(theta, attachments - p)), axis=1).max()
+        if found.kind[k] == 'cable':
+            assert biggest == pytest.approx(figures.MODE_SCALE_FRACTION * size, rel=1e-9)
+        elif biggest < figures.MODE_CABLE_CAP_FRACTION * size * (1 - 1e-9):
+            assert platform == pytest.approx(figures.MODE_SCALE_FRACTION * size, rel=1e-9)
+        else:
+            assert biggest == pytest.approx(figures.MODE_CABLE_CAP_FRACTION * size, rel=1e-9)
+            assert platform < figures.MODE_SCALE_FRACTION * size
         assert f'{found.frequency_hz[k]:.2f} Hz, {found.kind[k]}' in ax.get_title()
 
 
@@ -279,9 +287,22 @@ def test_tradeoff_labels_do_not_overlap_and_the_legend_names_the_families(tmp_pa
     assert png_size(tmp_path / 't.png')[0] > 1000
 
 
+def test_modes_of_little_platform_energy_never_stand_in_for_platform_modes():
+    """Where the band has fewer platform modes than panels, the modes of the largest platform
+    energy fill in, but none below PLATFORM_MIN_FRACTION (0.1 %): a cable mode with 0.001 %
+    is no platform mode."""
+    kinds = ['cable', 'mixed', 'cable', 'cable', 'cable']
+    fractions = [2e-5, 0.3, 5e-3, 9e-4, 1e-3]
+    assert figures.pick_modes(kinds, fractions, platform=3, cable=0) == [1, 2, 4]
+    assert figures.pick_modes(kinds, fractions, platform=5, cable=0) == [1, 2, 4]
+    assert figures.pick_modes(kinds, fractions, platform=3, cable=2) == [1, 2, 4, 0, 3]
+
+
 def test_platform_mode_labels_do_not_overlap():
     """Platform modes close on the log axis (the rigid robot's 18.2 and 26.4 Hz were drawn
-    over each other) are labelled in rows; coincident ones once, with the multiplicity."""
+    over each other) are labelled in rows; coincident ones once, with the multiplicity. The
+    rows are laid out when drawn: a narrower figure afterwards (tight_layout, another size)
+    stacks them again, still without overlap."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -291,13 +312,20 @@ def test_platform_mode_labels_do_not_overlap():
     ax.set_xlim(1.0, 40.0)
     figures.mark_modes(ax, [{'frequency_hz': f, 'kind': 'platform'} for f in freqs],
                        1.0, 40.0)
-    renderer = fig.canvas.get_renderer()
     notes = [t for t in ax.texts if isinstance(t, Annotation)]
     assert sorted(n.get_text() for n in notes) == sorted(
         ['1.5 Hz', '18.2 Hz', '26.4 Hz', '27.0 Hz (x2)', '31.0 Hz', '34.5 Hz', '38.0 Hz',
          '39.5 Hz'])
-    boxes = [n.get_window_extent(renderer) for n in notes]
-    for i in range(len(boxes)):
-        for j in range(i):
-            assert not boxes[i].overlaps(boxes[j]), (notes[i].get_text(), notes[j].get_text())
+    rows = {}
+    for width_in in (6.0, 3.0, 9.0):
+        fig.set_size_inches(width_in, 3.0)
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        boxes = [n.get_window_extent(renderer) for n in notes]
+        for i in range(len(boxes)):
+            for j in range(i):
+                assert not boxes[i].overlaps(boxes[j]), (width_in, notes[i].get_text(),
+                                                         notes[j].get_text())
+        rows[width_in] = len({n.xyann[1] for n in notes})
+    assert rows[3.0] > rows[6.0] >= rows[9.0] >= 1       # narrower: more rows
     plt.close(fig)

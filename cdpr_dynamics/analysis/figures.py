@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib.artist import Artist
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.cm import ScalarMappable
 from matplotlib.colors import Normalize
@@ -35,8 +36,14 @@ DIRECTIONS = DOF_NAMES
 DPI = 120
 #: Curves whose |H| differ by less than this (max relative difference, %) are called coincident.
 COINCIDE_PCT = 5.0
-#: The largest displacement of a drawn mode shape, as a fraction of the frame's largest extent.
+#: The largest displacement of a drawn mode shape, as a fraction of the frame's largest extent:
+#: of the platform in a platform or mixed mode, of anything in a cable mode.
 MODE_SCALE_FRACTION = 0.08
+#: The cables of a platform or mixed mode bow at most this fraction of the frame's extent
+#: (their mass-normalised motion can be several times the platform's).
+MODE_CABLE_CAP_FRACTION = 0.25
+#: Modes with less platform energy never stand in for platform modes (:func:`pick_modes`).
+PLATFORM_MIN_FRACTION = 1e-3
 MODE_STYLES = {'platform': dict(color='tab:red', ls='-', lw=1.5, alpha=0.9),
                'mixed': dict(color='tab:purple', ls='-.', lw=1.1, alpha=0.8),
                'cable': dict(color='0.45', ls=':', lw=0.9, alpha=0.8),
@@ -157,8 +164,40 @@ def percent_text(value: float) -> str:
     return f'{value:.2g} %' if value >= 0.01 else f'{value:.1e} %'
 
 
-LABEL_CHAR_PT = 4.2     # width of a character of the 7-point mode labels (pt, a bound)
-LABEL_ROW_PT = 9.0      # the next row of labels, where one would overlap its neighbour (pt)
+LABEL_ROW_PT = 9.0      # the next row of labels, where one would overlap another (pt)
+LABEL_GAP_PT = 1.5      # the least gap kept between two labels' text (pt)
+
+
+class ModeLabels(Artist):
+    """The platform-mode labels of one Axes, stacked in rows when the Axes is drawn.
+
+    It holds the labels (ascending frequency) and, drawn before them (lowest zorder), places
+    each in the first row below the top where its text, measured by the renderer at the
+    Axes' final size, keeps :data:`LABEL_GAP_PT` from every label placed before it; a label
+    in the right 15 % of the Axes reads leftwards of its line. Layout changes after
+    :func:`mark_modes` (``tight_layout``, another size or dpi) cannot make labels overlap."""
+
+    def __init__(self, notes):
+        super().__init__()
+        self.notes = list(notes)
+        self.set_zorder(-1e9)
+
+    def draw(self, renderer):
+        if not self.get_visible() or not self.notes:
+            return
+        ax = self.axes
+        box = ax.get_window_extent(renderer)
+        gap = renderer.points_to_pixels(LABEL_GAP_PT)
+        placed = []
+        for note in self.notes:
+            right = ax.transData.transform((note.xy[0], 1.0))[0] > box.x0 + 0.85 * box.width
+            note.set_horizontalalignment('right' if right else 'left')
+            for row in range(len(self.notes)):
+                note.xyann = (-3 if right else 3, -3 - LABEL_ROW_PT * row)
+                extent = note.get_window_extent(renderer).padded(gap / 2)
+                if not any(extent.overlaps(other) for other in placed):
+                    break
+            placed.append(extent)
 
 
 def mark_modes(ax, modes: list[dict], f_min_hz: float = 0.0, f_max_hz: float = np.inf,
@@ -166,7 +205,8 @@ def mark_modes(ax, modes: list[dict], f_min_hz: float = 0.0, f_max_hz: float = n
     """A vertical line per mode (dicts with ``frequency_hz`` and ``kind``, as the JSON's
     ``modes``) in [f_min, f_max] and above 0 Hz, a style per kind (:data:`MODE_STYLES`), one
     legend entry per kind (with the count); platform modes labelled with their frequency
-    (coincident ones once, with the multiplicity). Lines carry gid ``mode-<kind>``.
+    (coincident ones once, with the multiplicity), stacked so that no two labels overlap
+    (:class:`ModeLabels`). Lines carry gid ``mode-<kind>``, labels ``mode-label``.
     Returns {kind: [frequencies drawn]}."""
     drawn: dict = {}
     for kind in ('cable', 'mixed', None, 'platform'):        # platform lines on top
@@ -178,26 +218,13 @@ def mark_modes(ax, modes: list[dict], f_min_hz: float = 0.0, f_max_hz: float = n
         if freqs:
             drawn[kind] = freqs
     if annotate_platform and drawn.get('platform'):
-        top = f_max_hz if np.isfinite(f_max_hz) else max(drawn['platform'])
-        lo, hi = np.log(max(f_min_hz, 1e-3 * top)), np.log(top)
-        width_pt = ax.get_window_extent().width * 72.0 / ax.figure.dpi
-        rows: list[float] = []           # per row of labels, the right end of its last (pt)
-        for f, count in _clusters(drawn['platform']):
-            text = f'{f:.1f} Hz' + (f' (x{count})' if count > 1 else '')
-            at = (np.log(f) - lo) / (hi - lo) * width_pt
-            right = at > 0.85 * width_pt
-            span = LABEL_CHAR_PT * len(text)
-            start = at - 3 - span if right else at + 3
-            row = next((i for i, end in enumerate(rows) if start > end + 2), len(rows))
-            if row == len(rows):                         # it would overlap every row: a new one
-                rows.append(start + span)
-            else:
-                rows[row] = start + span
-            ax.annotate(text, (f, 1.0), xycoords=('data', 'axes fraction'),
-                        xytext=(-3 if right else 3, -3 - LABEL_ROW_PT * row),
-                        textcoords='offset points', ha='right' if right else 'left',
-                        va='top', fontsize=7, color=MODE_STYLES['platform']['color'],
-                        bbox=dict(facecolor='white', edgecolor='none', alpha=0.8, pad=0.5))
+        notes = [ax.annotate(f'{f:.1f} Hz' + (f' (x{count})' if count > 1 else ''), (f, 1.0),
+                             xycoords=('data', 'axes fraction'), xytext=(3, -3),
+                             textcoords='offset points', va='top', fontsize=7, gid='mode-label',
+                             color=MODE_STYLES['platform']['color'],
+                             bbox=dict(facecolor='white', edgecolor='none', alpha=0.8, pad=0.5))
+                 for f, count in _clusters(drawn['platform'])]
+        ax.add_artist(ModeLabels(notes))
     return drawn
 
 
@@ -579,13 +606,15 @@ def multiplicity(frequency_hz, relative: float = 1e-4) -> np.ndarray:
 def pick_modes(kinds, fractions, platform: int = 3, cable: int = 3,
                frequency_hz=None) -> list[int]:
     """Indices of the ``platform`` lowest platform modes (topped up, where the band has fewer,
-    with the other modes of the largest platform energy ``fractions``) and then of the
+    with the other modes of the largest platform energy ``fractions``, those with at least
+    :data:`PLATFORM_MIN_FRACTION` of it) and then of the
     ``cable`` lowest cable modes not already picked, one per repeated frequency where
     ``frequency_hz`` is given (the first transverse modes of symmetric cables come in sets);
     each group ascending."""
     kinds, fractions = list(kinds), np.asarray(fractions, dtype=float)
     plat = [i for i, k in enumerate(kinds) if k == 'platform'][:platform]
-    rest = [int(i) for i in np.argsort(-fractions, kind='stable') if int(i) not in plat]
+    rest = [int(i) for i in np.argsort(-fractions, kind='stable')
+            if int(i) not in plat and fractions[i] >= PLATFORM_MIN_FRACTION]
     plat += rest[:max(0, platform - len(plat))]
     cab: list[int] = []
     for i, k in enumerate(kinds):
@@ -644,11 +673,18 @@ def mode_shapes(settings, eq, system, found, indices, samples: int = 33) -> list
     return out
 
 
-def mode_scale(mode: ModeShape, size_m: float, fraction: float = MODE_SCALE_FRACTION) -> float:
-    """The factor that makes the mode's largest drawn displacement ``fraction * size_m``."""
-    largest = max(np.linalg.norm(mode.cable_displacement, axis=-1).max(initial=0.0),
-                  np.linalg.norm(mode.attachment_displacement, axis=-1).max(initial=0.0),
-                  float(np.linalg.norm(mode.centroid_displacement)))
+def mode_scale(mode: ModeShape, size_m: float, fraction: float = MODE_SCALE_FRACTION,
+               cable_cap: float = MODE_CABLE_CAP_FRACTION) -> float:
+    """The factor that draws the mode visibly: a platform or mixed mode with the platform's
+    largest displacement ``fraction * size_m`` (the cables' at most ``cable_cap * size_m``),
+    a cable mode with its largest displacement ``fraction * size_m``."""
+    platform = max(np.linalg.norm(mode.attachment_displacement, axis=-1).max(initial=0.0),
+                   float(np.linalg.norm(mode.centroid_displacement)))
+    cables = np.linalg.norm(mode.cable_displacement, axis=-1).max(initial=0.0)
+    if mode.kind in ('platform', 'mixed') and platform > 0:
+        return min(fraction * size_m / platform,
+                   cable_cap * size_m / cables if cables > 0 else np.inf)
+    largest = max(platform, cables)
     return fraction * size_m / largest if largest > 0 else 0.0
 
 
@@ -698,16 +734,18 @@ def modes_figure(modes: list[ModeShape], anchors_m, path: Path, title: str = '')
     size = float(np.ptp(anchors, axis=0).max())
     cols = min(3, len(modes))
     rows = -(-len(modes) // cols)
-    fig = _figure(3.6 * cols, 3.5 * rows + 0.6)
+    fig = _figure(3.6 * cols, 3.5 * rows + 0.8)
     for i, mode in enumerate(modes):
         ax = fig.add_subplot(rows, cols, i + 1, projection='3d')
         draw_mode(ax, mode, mode_scale(mode, size), anchors)
         ax.set_title(mode_title(mode), fontsize=8)
         ax.view_init(elev=20, azim=-58)
-    fig.suptitle((title + '\n' if title else '') + 'mode shapes: largest displacement drawn '
-                 f'at {100 * MODE_SCALE_FRACTION:g} % of the frame size; undeformed grey, '
-                 "platform orange (arrow: centroid motion), the mode's cable red", fontsize=9)
-    fig.subplots_adjust(left=0.02, right=0.96, bottom=0.02, top=1 - 0.85 / fig.get_figheight(),
+    fig.suptitle((title + '\n' if title else '') + 'mode shapes drawn with the platform (platform'
+                 f' and mixed modes; cables at most {100 * MODE_CABLE_CAP_FRACTION:g} %) or the '
+                 f'largest displacement (cable modes) at {100 * MODE_SCALE_FRACTION:g} % of the '
+                 "frame size;\nundeformed grey, platform orange (arrow: centroid motion), the "
+                 "mode's cable red", fontsize=9)
+    fig.subplots_adjust(left=0.02, right=0.96, bottom=0.02, top=1 - 1.0 / fig.get_figheight(),
                         wspace=0.08, hspace=0.15)
     return _save(fig, path)
 

@@ -2,9 +2,12 @@
 
 Maps: for each design variant and each slice axis, one figure with a row per quantity
 (:data:`QUANTITIES`: the lowest platform mode, the peak receptance, the tension margin) and a
-column per slice (at most :data:`MAX_SLICES`, evenly spread, ends included). Poses whose
-status is not ``ok`` are hatched; the frame's outline and the anchors (projected on the
-slice plane) are drawn. Maps need a grid (not ``--poses``).
+column per slice (at most :data:`MAX_SLICES`, evenly spread, ends included). A quantity has
+one colour scale in every variant's figure (:func:`colour_limits`), so variants compare by
+colour. Poses without a result (status not ``ok``) are white and hatched, feasible poses
+without a value (e.g. no platform mode in the band) white; the legend says so. The frame's
+outline and the anchors (projected on the slice plane) are drawn. Maps need a grid (not
+``--poses``).
 """
 from __future__ import annotations
 
@@ -33,6 +36,27 @@ def variant_labels(run) -> list[str]:
     return [', '.join(f'{k} = {v}' for k, v in values.items()) for values in run.variant_list]
 
 
+def transformed(name: str, data) -> np.ndarray:
+    """The values of quantity ``name`` as mapped (its transform applied), NaN where none."""
+    transform = {q[0]: q[2] for q in QUANTITIES}[name]
+    data = np.asarray(data, dtype=float)
+    if transform is not None:
+        with np.errstate(divide='ignore', invalid='ignore'):
+            data = transform(data)
+    return np.where(np.isfinite(data), data, np.nan)
+
+
+def colour_limits(table) -> dict:
+    """Per quantity of :data:`QUANTITIES` its (vmin, vmax) over every row of ``table``, all
+    variants together ((0, 1) where it has no value)."""
+    limits = {}
+    for name, *_ in QUANTITIES:
+        finite = transformed(name, _column(table, name))
+        finite = finite[np.isfinite(finite)]
+        limits[name] = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    return limits
+
+
 def write_maps(table, run, axes=('z',)) -> list[Path]:
     """The map PNGs of ``table`` (a grid run), one per variant and slice axis."""
     if run.grid is None:
@@ -45,14 +69,15 @@ def write_maps(table, run, axes=('z',)) -> list[Path]:
     status = np.asarray(table.column('status').to_pylist(), dtype=object)
     paths = []
     labels = variant_labels(run)
+    limits = colour_limits(table)
     for v, label in enumerate(labels):
         rows = slice(v * n, (v + 1) * n)
         bad = (status[rows] != 'ok').reshape(run.shape)
         values = {name: _column(table, name)[rows].reshape(run.shape) for name, *_ in
                   QUANTITIES}
         for axis in axes:
-            fig = _figure(plt, run, values, bad, _AXES.index(axis))
-            fig.suptitle(f'{run.config_path.name}: workspace maps across {axis} '
+            fig = map_figure(plt, run, values, bad, _AXES.index(axis), limits)
+            fig.suptitle(f'{run.config_path.name}: workspace maps across {axis}\n'
                          f'({"; ".join(filter(None, [_model(run), label]))})',
                          fontsize='medium')
             suffix = f'_v{v}' if len(labels) > 1 else ''
@@ -84,7 +109,9 @@ def _edges(centres: np.ndarray, fallback: float) -> np.ndarray:
     return np.concatenate([[2 * centres[0] - mid[0]], mid, [2 * centres[-1] - mid[-1]]])
 
 
-def _figure(plt, run, values, bad, axis: int):
+def map_figure(plt, run, values, bad, axis: int, limits: dict):
+    """The figure of one variant across ``axis``: ``values`` {quantity: grid-shaped array},
+    ``bad`` (grid-shaped) where the status is not ok, ``limits`` {quantity: (vmin, vmax)}."""
     from matplotlib.patches import Rectangle
     plane = [a for a in range(3) if a != axis]
     grid = run.grid
@@ -96,16 +123,13 @@ def _figure(plt, run, values, bad, axis: int):
                                figsize=(2.9 * len(picks) + 1.2, 2.7 * len(QUANTITIES)),
                                constrained_layout=True)
     anchors = run.settings.robot.anchors_m
-    for row, (name, label, transform, cmap) in enumerate(QUANTITIES):
-        data = values[name]
-        if transform is not None:
-            with np.errstate(divide='ignore', invalid='ignore'):
-                data = transform(data)
-        shown = np.where(np.isfinite(data), data, np.nan)
-        finite = shown[np.isfinite(shown)]
-        vmin, vmax = (float(finite.min()), float(finite.max())) if finite.size else (0, 1)
+    no_value = False
+    for row, (name, label, _, cmap) in enumerate(QUANTITIES):
+        shown = transformed(name, values[name])
+        no_value |= bool(np.any(np.isnan(shown) & ~bad))
+        vmin, vmax = limits[name]
         norm = None
-        if name == 'tension_margin_n' and finite.size and vmin < 0 < vmax:
+        if name == 'tension_margin_n' and vmin < 0 < vmax:
             from matplotlib.colors import TwoSlopeNorm
             norm = TwoSlopeNorm(0.0, vmin, vmax)
         mesh = None
@@ -137,10 +161,16 @@ def _figure(plt, run, values, bad, axis: int):
             if col == 0:
                 ax.set_ylabel(f'{_AXES[plane[1]]} (m)')
         fig.colorbar(mesh, ax=panels[row, :].tolist(), label=label, shrink=0.9)
-    fig.legend(handles=[panels[0, 0].lines[-1],
-                        Rectangle((0, 0), 1, 1, fill=False, hatch='///', edgecolor='0.35',
-                                  label='status not ok (infeasible, crossing, ...)')],
-               loc='outside lower center', ncols=2, fontsize='small', frameon=False)
+    handles = [panels[0, 0].lines[-1],
+               Rectangle((0, 0), 1, 1, facecolor='white', hatch='///', edgecolor='0.35',
+                         label='hatched: status != ok (infeasible, crossing, ...);\n'
+                               'white where it leaves no result')]
+    if no_value:
+        handles.append(Rectangle((0, 0), 1, 1, facecolor='white', edgecolor='0.35',
+                                 label='white, not hatched: no value at a feasible pose\n'
+                                       '(e.g. no platform mode in the band)'))
+    fig.legend(handles=handles, loc='outside lower center', ncols=1 if len(picks) < 3 else 3,
+               fontsize='small', frameon=False)
     return fig
 
 
