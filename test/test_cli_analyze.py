@@ -101,7 +101,7 @@ def test_analyze_without_ament_prefix_path_finds_the_paper_config(tmp_path):
 
 def test_sag_parameter_reported_and_straight_models_warned_on_slack_ish_cables(tmp_path):
     """Low tensions make lambda^2 large: straight models get a sag warning, catenary not."""
-    config = write_config(tmp_path, **{'tension.min_n': 10.0})
+    config = write_config(tmp_path, **{'tension.min_n': 10.0, 'model.tolerance': 0.01})
     docs = {}
     for method in ('fem', 'catenary_exact'):
         out = analyze('--config', config, '--method', method, '--elements', '4',

@@ -577,18 +577,6 @@ def test_ctrl_c_during_the_imports_ends_a_tool_with_one_line(ros_env, tmp_path, 
     assert said == [f'{tool}: interrupted'], said[-20:]
 
 
-def test_readme_documents_every_parameter():
-    text = (REPO / 'README.md').read_text()
-    section = text[text.index('## Configuration'):text.index('## How the numerics work')]
-    rows = {line.split('|')[1].strip().strip('`'): line for line in section.splitlines()
-            if line.startswith('| `')}
-    for param in PARAMETERS + NODE_PARAMETERS:
-        assert param.name in rows, f'README Configuration table lacks {param.name}'
-        assert ('**required**' in rows[param.name]) == param.required, param.name
-        if param.default not in (None, []):
-            assert f'| `{param.default}` |' in rows[param.name], param.name
-
-
 def test_a_modal_ratio_beside_rayleigh_factors_is_a_one_line_error(tmp_path):
     """Both damping forms given (e.g. factors set on top of the default 2 % ratio) would let
     one silently win: it is an error that says how to choose."""

@@ -379,10 +379,12 @@ def test_starts_at_the_initial_pose(paper):
     assert model['values']['method'] == 'fem' and model['values']['dofs'] == '363'
     assert model['values']['qp_status'] == 'solved'
     assert 'heavy damping' in model['values']['warnings']     # the paper's C = 0.05 M + 0.05 K
-    # Irvine's lambda^2 per cable, and the warning that straight fem ignores it at 1 %
+    # Irvine's lambda^2 per cable: straight fem's ~1.7 % sag error is within the paper
+    # file's model.tolerance of 2 %, so no sag warning (test_model_warnings_reach_the_log
+    # has one at 1 %)
     sag = [float(v) for v in model['values']['sag_parameter'].split(';')]
     np.testing.assert_allclose(sag, [0.1989] * 4 + [0.0169] * 4, atol=1e-4)
-    assert 'sag: lambda^2 up to 0.199' in model['values']['warnings']
+    assert paper.settings.tolerance == 0.02 and 'sag:' not in model['values']['warnings']
 
 
 def test_markers_at_start_and_on_rebuild(paper):
@@ -695,7 +697,8 @@ def test_model_warnings_reach_the_log(ros):
     """The model's warnings reach the log a user watches, not only /diagnostics: all at start,
     not again while their kinds stay the same (a rebuild at a nearby pose), and again when the
     set changes (another model)."""
-    node = Harness(PAPER, ros['log_dir'], 'warnlog', {'model.method': 'spring'})
+    node = Harness(PAPER, ros['log_dir'], 'warnlog', {'model.method': 'spring',
+                                                      'model.tolerance': 0.01})
     try:
         def log() -> str:
             node._log.flush()

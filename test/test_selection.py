@@ -49,14 +49,20 @@ def box(x, y, z):
             for c in (xx, yy, zz)]
 
 
+def paper_params() -> dict:
+    """The paper robot's parameters held to a 1 % model.tolerance (its file accepts 2 % for
+    the paper's straight FEM): the choices below are judged at 1 %."""
+    return {**read_params_file(CONFIG), 'model.tolerance': 0.01}
+
+
 def paper(**changes):
-    flat = read_params_file(CONFIG)
+    flat = paper_params()
     flat.update(changes)
     return settings_from_params(flat)
 
 
 def low_tension(**changes):
-    flat = read_params_file(CONFIG)
+    flat = paper_params()
     flat.update({'robot.anchors': box(2.0, 1.5, 3.0), 'robot.attachments': [0.0] * 24,
                  'robot.mass_kg': 10.0, 'robot.initial_position': [0.0, 0.0, 1.5],
                  'cable.area_m2': 7.07e-6, 'cable.youngs_modulus_pa': 2e11,
@@ -82,7 +88,8 @@ def heavy_sag(**changes):
 
 def paper_light(**changes):
     """The paper's robot with 2 % modal damping instead of its heavy Rayleigh damping."""
-    return paper(**{'damping.modal_ratio': 0.02, **changes})
+    return paper(**{'damping.modal_ratio': 0.02, 'damping.mass_factor': 0.0,
+                    'damping.stiffness_factor': 0.0, **changes})
 
 
 ROBOTS = {'paper': paper, 'low_tension': low_tension, 'six_dof': six_dof,

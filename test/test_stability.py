@@ -254,7 +254,7 @@ def test_linear_response_that_slackens_a_cable_is_flagged(tmp_path):
 
 
 def test_auto_reason_reaches_the_analyze_json(tmp_path):
-    config = write_config(tmp_path, **{'model.method': 'auto'})
+    config = write_config(tmp_path, **{'model.method': 'auto', 'model.tolerance': 0.01})
     out = analyze('--config', config, '--json', tmp_path / 'a.json', '--duration', '0.01')
     assert out.returncode == 0, out.stderr
     doc = json.loads((tmp_path / 'a.json').read_text())

@@ -323,8 +323,10 @@ def frf_figure(documents: list[dict], path: Path, direction: str = 'z') -> Figur
                  f'{direction[1]}')
     damping = first.get('damping') or {}
     if damping:
-        title += (f"; damping C = {damping['mass_factor']:.3g} M + "
-                  f"{damping['stiffness_factor']:.3g} K")
+        ratio = damping.get('modal_ratio') or 0.0
+        title += ('; damping ' + (f'{100 * ratio:g} % modal (' if ratio > 0 else '')
+                  + f"C = {damping['mass_factor']:.3g} M + {damping['stiffness_factor']:.3g} K"
+                  + (')' if ratio > 0 else ''))
     suffix = f' of {first["method"]}' if len(documents) > 1 else ''
     draw_frf(ax, f, curves, first.get('modes'), ax_phase, unit, ylabel, suffix)
     ax.set_title(title, fontsize=9)

@@ -138,6 +138,7 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
         'natural_frequencies_hz': freqs.tolist(),
         'damping': {'mass_factor': damping.mass_factor,
                     'stiffness_factor': damping.stiffness_factor,
+                    'modal_ratio': settings.damping_modal_ratio,
                     'modal_damping_ratios': [r if np.isfinite(r) else None  # 0 Hz modes
                                              for r in damping.ratios(freqs).tolist()]},
         'modes': mode_entries(found, freqs, damping),
@@ -239,7 +240,8 @@ def _plot(documents: list[dict], plot_dir: Path, settings: Settings, eq: Equilib
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='cdpr_analyze', description=plain(__doc__.split('\n')[0]))
+    parser = argparse.ArgumentParser(prog='cdpr_analyze',
+                                     description=plain(__doc__.split('\n')[0]))
     parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
     parser.add_argument('--method', nargs='+', choices=METHODS,
                         help='cable model(s); the first fills the top level of the JSON')

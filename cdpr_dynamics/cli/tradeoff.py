@@ -124,7 +124,8 @@ def summary(rows: list[dict], reference) -> str:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='cdpr_tradeoff', description=plain(__doc__.split('\n')[0]))
+    parser = argparse.ArgumentParser(prog='cdpr_tradeoff',
+                                     description=plain(__doc__.split('\n')[0]))
     parser.add_argument('--config', help='ROS 2 parameter YAML (default: the paper robot)')
     parser.add_argument('--f-max', type=float, help='top of the band (Hz; default frf.f_max_hz)')
     parser.add_argument('--tolerance', type=float,
