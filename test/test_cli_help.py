@@ -4,12 +4,16 @@ import re
 
 import pytest
 
+from cdpr_dynamics import cli
 from cdpr_dynamics.cli import plain
 from conftest import REPO
 
-#: console scripts of setup.py (name -> module, function); the node's --help is its own
-TOOLS = {name: (module, function) for name, module, function in re.findall(
-    r"'(cdpr_\w+) = ([\w.]+):(\w+)'", (REPO / 'setup.py').read_text())}
+#: console scripts of setup.py (name -> entry attribute of cdpr_dynamics.cli); the node's
+#: --help is its own
+TOOLS = dict(re.findall(r"'(cdpr_\w+) = cdpr_dynamics\.cli:(\w+)'",
+                        (REPO / 'setup.py').read_text()))
+#: tools with subcommands: each subcommand's --help too
+SUBCOMMANDS = {'cdpr_calibrate': ('identify', 'fit')}
 MARKUP = re.compile(r'``|:(func|mod|class|meth|data|attr|ref):|`[^`\s][^`]*`|\*\*')
 
 
@@ -19,12 +23,13 @@ def test_plain_drops_roles_literals_and_bold():
         'see time_history, frf.force_n and not MAX_DOFS or x'
 
 
-@pytest.mark.parametrize('name', sorted(TOOLS))
-def test_help_has_no_rst_markup(name, capsys):
-    module, function = TOOLS[name]
-    main = getattr(importlib.import_module(module), function)
+@pytest.mark.parametrize('name, sub', [(name, sub) for name in sorted(TOOLS)
+                                       for sub in (None,) + SUBCOMMANDS.get(name, ())])
+def test_help_has_no_rst_markup(name, sub, capsys):
+    module = getattr(cli, TOOLS[name]).module
+    main = importlib.import_module(module).main
     with pytest.raises(SystemExit) as done:
-        main(['--help'])
+        main([sub, '--help'] if sub else ['--help'])
     assert done.value.code == 0
     text = capsys.readouterr().out
     assert f'usage: {name}' in text.replace('\n', ' ')
