@@ -42,11 +42,11 @@ MARKER = re.compile(r'^<!-- cdpr:([\w-]+) -->$', re.M)
 #: the package's layers, low to high, with what each holds (the API page's sections)
 LAYERS = (
     ('cdpr_dynamics.models', 'Cable models: one interface, one module per model, a registry.'),
-    ('cdpr_dynamics.mechanics', 'Robot geometry, tension distribution, feasibility, statics.'),
-    ('cdpr_dynamics.dynamics', 'Platform assembly, damping, FRF, Newmark, modes, slack.'),
+    ('cdpr_dynamics.mechanics', 'Robot geometry, tensions, feasibility, statics, underactuated.'),
+    ('cdpr_dynamics.dynamics', 'Assembly, damping, FRF, Newmark, modes, slack, shapers.'),
     ('cdpr_dynamics.selection', 'Closed forms, error estimates, the reference, ``auto``.'),
     ('cdpr_dynamics.analysis', 'The parameter table, the pipeline, the live core, maps, '
-     'figures.'),
+     'calibration, figures.'),
     ('msg_adapters', 'The only place that converts ROS messages.'),
     ('cdpr_dynamics.recording', 'MCAP writer, reader, recorder, recovery, replay.'),
     ('cdpr_dynamics.ros', 'The node and its processes.'),
@@ -59,11 +59,7 @@ def _cell(text: str) -> str:
 
 
 def _number(value) -> str:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return str(value)
-    if isinstance(value, int):
-        return str(value)
-    return f'{value:g}'
+    return f'{value:g}' if isinstance(value, float) else str(value)
 
 
 def _range(param) -> str:
@@ -82,7 +78,7 @@ def _default(param) -> str:
     if param.required:
         return '**required**'
     if param.default == []:
-        return 'none'
+        return '`[]`'
     return f'`{param.default}`'
 
 
