@@ -321,3 +321,24 @@ def test_cli_fit_errors_are_one_line(tmp_path, capsys, args, message):
     err = capsys.readouterr().err
     assert code == 1 and message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / 'out.yaml').exists()
+
+
+def test_centre_of_mass_and_inertia_recovered():
+    """Rigid robot with its centre of mass off the platform frame's origin: the centre of mass
+    within 5 mm and the inertia diagonal within 10 %, from 6 modes a pose."""
+    config = read_params_file(RIGID)
+    config['model.method'] = 'spring'
+    true_com = [0.01, -0.015, 0.03]
+    truth = dict(config, **{'robot.center_of_mass_m': true_com,
+                            'robot.inertia_kg_m2': [0.26, 0.21, 0.16, 0.0, 0.0, 0.0]})
+    table = campaign(truth, 30, 6, tilt_rad=0.15)
+    report = fit(config, table, ['robot.center_of_mass_m', 'robot.inertia_kg_m2[0]',
+                                 'robot.inertia_kg_m2[1]', 'robot.inertia_kg_m2[2]'],
+                 holdout=0.3).report
+    for i, true in enumerate(true_com):
+        com = fitted(report, f'robot.center_of_mass_m[{i}]')
+        assert abs(com['fitted'] - true) < 0.005 and 0 < com['std'] < 0.005, com
+    for i, true in enumerate((0.26, 0.21, 0.16)):
+        assert abs(fitted(report, f'robot.inertia_kg_m2[{i}]')['fitted'] / true - 1) < 0.10
+    held = report['rms_error_pct']['holdout']
+    assert held['before'] > 2.0 and held['after'] < 1.5, held
