@@ -378,3 +378,26 @@ def test_swivel_angle_of_a_vertical_pulley_is_the_azimuth_of_its_attachment():
     # k = -z: the reference is x (z has no part across the axis); angles about -z
     assert_allclose(geo.pulleys.swivel_rad, -np.arctan2(towards[:, 1], towards[:, 0]),
                     atol=1e-12)
+
+
+@pytest.mark.parametrize('name', ['suspended_3cable.yaml', 'suspended_4cable.yaml'])
+def test_pulleys_on_the_suspended_configs(name):
+    """The suspended lab robots over 22.5 mm pulleys fed from outside, 2 m of winch-side
+    cable and the centre of mass 0.2 m below the attachments: held, stable, and the spring
+    stiffness the derivative of their balance."""
+    flat = dict(read_params_file(CONFIG / name))
+    anchors = np.asarray(flat['robot.anchors'], dtype=float).reshape(-1, 3)
+    n = anchors.shape[0]
+    inward = -anchors[:, :2] / np.linalg.norm(anchors[:, :2], axis=1)[:, None]
+    flat.update({'robot.pulley_axes': np.hstack([inward, np.zeros((n, 1))]).ravel().tolist(),
+                 'robot.pulley_radii_m': [0.0225] * n, 'cable.winch_side_lengths_m': [2.0] * n,
+                 'robot.center_of_mass_m': [0.0, 0.0, -0.2]})
+    s = settings_from_params(flat)
+    eq = pipeline.equilibrium(s)
+    assert np.abs(platform_wrench(s, eq, np.zeros(6))).max() < 1e-8
+    k = pipeline.build_system(s, eq, 'spring').static_stiffness()
+    h = 1e-6
+    jac = np.array([(platform_wrench(s, eq, h * e) - platform_wrench(s, eq, -h * e)) / (2 * h)
+                    for e in np.eye(6)]).T
+    assert np.all(np.abs(-jac - k).max(axis=0) < 1e-6 * np.abs(k).max(axis=0))
+    assert np.all(np.linalg.eigvalsh(k) > 0)
