@@ -264,6 +264,7 @@ def test_modal_damping_ratio_fitted_as_a_weighted_mean():
     (p,) = result.report['parameters']
     assert abs(p['fitted'] - 0.03) < 3 * p['std'] and p['std'] < 0.001
     assert_allclose(p['fitted'], np.mean(zeta), rtol=1e-9)     # equal weights: the mean
+    assert result.flat['damping.mass_factor'] == result.flat['damping.stiffness_factor'] == 0
 
 
 # --------------------------------------------------------------------------- YAML and CLI
@@ -288,15 +289,19 @@ def test_cli_fit_writes_yaml_report_and_figures(tmp_path, capsys):
     config = read_params_file(RIGID)
     config['model.method'] = 'spring'
     truth = dict(config, **{'cable.youngs_modulus_pa': 2.2e10})
-    write_modes_table(tmp_path / 'modes.csv', campaign(truth, 8, 4, directions=True))
+    table = campaign(truth, 8, 4, directions=True, damping=Damping(0.0, 4e-4))
+    write_modes_table(tmp_path / 'modes.csv', table)
     yaml_in = tmp_path / 'robot.yaml'
     yaml_in.write_text(RIGID.read_text().replace('method: fem', 'method: spring'))
     out = tmp_path / 'calibrated.yaml'
     code = main(['fit', '--config', str(yaml_in), '--measurements', str(tmp_path / 'modes.csv'),
-                 '--fit', 'cable.youngs_modulus_pa', '--output', str(out), '--holdout', '0.25',
-                 '--report', str(tmp_path / 'report')])
+                 '--fit', 'cable.youngs_modulus_pa', 'damping.modal_ratio', '--output', str(out),
+                 '--holdout', '0.25', '--report', str(tmp_path / 'report')])
     assert code == 0
-    value = read_params_file(out)['cable.youngs_modulus_pa']
+    calibrated = read_params_file(out)
+    settings = settings_from_params(calibrated)       # the file's Rayleigh factors set to 0
+    assert settings.damping_modal_ratio > 0 and settings.damping_mass_factor == 0
+    value = calibrated['cable.youngs_modulus_pa']
     assert abs(value / 2.2e10 - 1) < 0.02
     report = json.loads((tmp_path / 'report' / 'report.json').read_text())
     assert report['parameters'][0]['fitted'] == pytest.approx(value, rel=1e-9)

@@ -646,8 +646,10 @@ def fit(flat: dict, table: ModesTable, names, holdout: float = 0.0, seed: int = 
                                'relative_std': s / value if value else None})
         new_flat = with_values(new_flat, [Target(n, None) for n in fitted_damping],
                                [v for v, _ in fitted_damping.values()])
-        if 'damping.modal_ratio' not in fitted_damping:
-            new_flat['damping.modal_ratio'] = 0.0   # else it overrides the fitted factors
+        # a modal ratio and Rayleigh factors exclude each other: the other kind is set to 0
+        others = (('damping.mass_factor', 'damping.stiffness_factor')
+                  if 'damping.modal_ratio' in fitted_damping else ('damping.modal_ratio',))
+        new_flat.update({name: 0.0 for name in others})
         report['damping'] = _damping_summary(table, flat, new_flat, problem_all, before,
                                              after, rows_all, is_held)
     report['parameters'] = parameters

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.analysis.calibration import (DAMPING_PARAMETERS, CalibrationError,
-                                                calibrated_yaml, fit)
+                                                calibrated_yaml, current_value, fit)
 from cdpr_dynamics.analysis.config import ConfigError, read_params_file
 from cdpr_dynamics.analysis.identification import (IdentificationError, Options,
                                                    identify_record)
@@ -170,10 +170,9 @@ def fit_main(args) -> int:
     result = fit(flat, table, args.fit, args.holdout, args.seed)
     report = result.report
     changed = {name: result.flat[name] for name in result.values}
-    ratio = result.flat.get('damping.modal_ratio', 0.0)
-    if ratio != flat.get('damping.modal_ratio', 0.0) and \
-            any(n in DAMPING_PARAMETERS for n in result.values):
-        changed['damping.modal_ratio'] = result.flat['damping.modal_ratio']
+    for name in DAMPING_PARAMETERS:     # the kind of damping not fitted, set to 0 by the fit
+        if name in result.flat and result.flat[name] != current_value(flat, name):
+            changed[name] = result.flat[name]
     text = Path(args.config).read_text(encoding='utf-8')
     Path(args.output).write_text(calibrated_yaml(text, changed, result.values),
                                  encoding='utf-8')
