@@ -21,7 +21,7 @@ from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.dynamics.system import ChainNewmark, Damping, Newmark, _pair_pattern, _step_maps
 from cdpr_dynamics.models import fem_sag
 from cdpr_dynamics.models.base import CableSet
-from test_pose_update_fast import HEAVY, PAPER, RIGID, _history
+from test_pose_update import HEAVY, PAPER, RIGID, _history
 
 LOW = PAPER.parent / 'low_tension_cdpr.yaml'
 

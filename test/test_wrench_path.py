@@ -19,7 +19,7 @@ from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.dynamics.system import ChainNewmark, Newmark
 from cdpr_dynamics.analysis.live import LivePredictor, rotated_quaternion
 from cdpr_dynamics.mechanics.robot import matrix_to_quaternion
-from test_pose_update_fast import HEAVY, PAPER, RIGID, _system
+from test_pose_update import HEAVY, PAPER, RIGID, _system
 
 
 @pytest.mark.parametrize('config, method, elements', [
