@@ -68,6 +68,28 @@ def pytest_runtest_makereport(item, call):
 
 
 @pytest.fixture
+def ros_context(tmp_path, monkeypatch):
+    """An rclpy Context of this test's own, in-process: a reserved domain id, localhost
+    discovery, logs under tmp_path, no signal handlers; shut down after the test."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from cdpr_dynamics.ros.process import isolated_env, reserve_domain_id
+
+    with reserve_domain_id(1, 140) as domain:
+        for name, value in isolated_env(domain.domain_id, tmp_path / 'log').items():
+            if name.startswith(('ROS_', 'AMENT_')):
+                monkeypatch.setenv(name, value)
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=domain.domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            yield context
+        finally:
+            rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture
 def output_dir(request) -> Path:
     """test_output/<module>/<test>/: for recordings and logs of a test; removed if it passes."""
     module = Path(str(request.node.fspath)).stem

@@ -310,45 +310,34 @@ def test_a_node_that_does_not_come_up_is_named_with_what_is_missing(tmp_path):
         f'predicted_pose publisher, a /diagnostics message (log: {log})')
 
 
-def test_a_polled_recorder_takes_everything_in_bounded_batches(tmp_path, monkeypatch):
+def test_a_polled_recorder_takes_everything_in_bounded_batches(tmp_path, ros_context):
     """Recorder.poll (the demo's recorder on a node no executor spins): discovery, then each
     call takes at most one batch per topic, and polling until the queue is empty records every
     message of a reliable burst, as the file then holds."""
     import rclpy
     from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
 
-    from cdpr_dynamics.ros.process import isolated_env, reserve_domain_id, wait_until
+    from cdpr_dynamics.ros.process import wait_until
     from cdpr_dynamics.recording.reader import recording_info
     from cdpr_dynamics.recording.recorder import _TAKE_BATCH, Recorder
     from msg_adapters.validation import ns_to_stamp
     from msg_adapters.wrench import wrench_message
 
     burst = 3 * _TAKE_BATCH + 17
-    with reserve_domain_id(1, 140) as domain:
-        for name, value in isolated_env(domain.domain_id, tmp_path / 'log').items():
-            if name.startswith(('ROS_', 'AMENT_')):
-                monkeypatch.setenv(name, value)
-        context = rclpy.Context()
-        rclpy.init(context=context, domain_id=domain.domain_id,
-                   signal_handler_options=SignalHandlerOptions.NO)
-        try:
-            talker = rclpy.create_node('talker', context=context)
-            quiet = rclpy.create_node('quiet', context=context)      # never spun
-            pub = talker.create_publisher(WrenchStamped, 'wrench', QoSProfile(
-                depth=burst, reliability=ReliabilityPolicy.RELIABLE))
-            recorder = Recorder(quiet, tmp_path / 'w.mcap', ['wrench'], qos_depth=burst)
-            assert wait_until(lambda: pub.get_subscription_count() == 1, 10.0, recorder.poll)
-            for k in range(burst):
-                pub.publish(wrench_message([0.0, 0.0, k], stamp=ns_to_stamp(k + 1)))
-            assert pub.wait_for_all_acked(rclpy.duration.Duration(seconds=10.0))
-            recorder.poll()
-            assert recorder.topic_counts['/wrench'] == _TAKE_BATCH     # one batch per call
-            assert wait_until(lambda: recorder.topic_counts['/wrench'] == burst, 10.0,
-                              recorder.poll)
-            summary = recorder.close()
-            assert summary.topics == {'/wrench': burst}
-            assert recording_info(tmp_path / 'w.mcap').topics['/wrench'].message_count == burst
-        finally:
-            rclpy.try_shutdown(context=context)
+    talker = rclpy.create_node('talker', context=ros_context)
+    quiet = rclpy.create_node('quiet', context=ros_context)      # never spun
+    pub = talker.create_publisher(WrenchStamped, 'wrench', QoSProfile(
+        depth=burst, reliability=ReliabilityPolicy.RELIABLE))
+    recorder = Recorder(quiet, tmp_path / 'w.mcap', ['wrench'], qos_depth=burst)
+    assert wait_until(lambda: pub.get_subscription_count() == 1, 10.0, recorder.poll)
+    for k in range(burst):
+        pub.publish(wrench_message([0.0, 0.0, k], stamp=ns_to_stamp(k + 1)))
+    assert pub.wait_for_all_acked(rclpy.duration.Duration(seconds=10.0))
+    recorder.poll()
+    assert recorder.topic_counts['/wrench'] == _TAKE_BATCH     # one batch per call
+    assert wait_until(lambda: recorder.topic_counts['/wrench'] == burst, 10.0,
+                      recorder.poll)
+    summary = recorder.close()
+    assert summary.topics == {'/wrench': burst}
+    assert recording_info(tmp_path / 'w.mcap').topics['/wrench'].message_count == burst

@@ -833,7 +833,7 @@ def test_recover_cli(ros_env, tmp_path):
 
 
 def test_messages_published_before_the_recorder_subscribed_are_warned_by_topic(
-        monkeypatch, tmp_path):
+        ros_context, tmp_path):
     """A pose sent once before the recorder subscribed never reaches the file (volatile
     publisher); the replay would then start from another pose without a word. Closing warns,
     naming the topic: no message at all on /pose, the first two of /wrench missing (its
@@ -841,43 +841,32 @@ def test_messages_published_before_the_recorder_subscribed_are_warned_by_topic(
     import rclpy
     from geometry_msgs.msg import PoseStamped, WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
 
     from cdpr_dynamics.recording.recorder import Recorder
-    from cdpr_dynamics.ros.process import isolated_env, reserve_domain_id, wait_until
+    from cdpr_dynamics.ros.process import wait_until
 
-    with reserve_domain_id(1, 140) as domain:
-        for name, value in isolated_env(domain.domain_id, tmp_path / 'log').items():
-            if name.startswith(('ROS_', 'AMENT_')):
-                monkeypatch.setenv(name, value)
-        context = rclpy.Context()
-        rclpy.init(context=context, domain_id=domain.domain_id,
-                   signal_handler_options=SignalHandlerOptions.NO)
-        try:
-            talker = rclpy.create_node('talker', context=context)
-            quiet = rclpy.create_node('quiet', context=context)      # never spun
-            reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-            pose = talker.create_publisher(PoseStamped, 'pose', reliable)
-            wrench = talker.create_publisher(WrenchStamped, 'wrench', reliable)
-            tensions = talker.create_publisher(JointState, 'cable_tensions', reliable)
-            pose.publish(PoseStamped())                  # before anyone listens
-            for _ in range(2):
-                wrench.publish(WrenchStamped())
-            recorder = Recorder(quiet, tmp_path / 'late.mcap',
-                                ['pose', 'wrench', 'cable_tensions'])
-            assert wait_until(lambda: all(p.get_subscription_count() == 1
-                                          for p in (pose, wrench, tensions)), 10.0,
-                              recorder.poll)
-            for _ in range(3):
-                wrench.publish(WrenchStamped())
-                tensions.publish(JointState())
-            assert wait_until(lambda: recorder.topic_counts['/wrench'] == 3
-                              and recorder.topic_counts['/cable_tensions'] == 3, 10.0,
-                              recorder.poll)
-            summary = recorder.close()
-        finally:
-            rclpy.try_shutdown(context=context)
+    talker = rclpy.create_node('talker', context=ros_context)
+    quiet = rclpy.create_node('quiet', context=ros_context)      # never spun
+    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    pose = talker.create_publisher(PoseStamped, 'pose', reliable)
+    wrench = talker.create_publisher(WrenchStamped, 'wrench', reliable)
+    tensions = talker.create_publisher(JointState, 'cable_tensions', reliable)
+    pose.publish(PoseStamped())                  # before anyone listens
+    for _ in range(2):
+        wrench.publish(WrenchStamped())
+    recorder = Recorder(quiet, tmp_path / 'late.mcap',
+                        ['pose', 'wrench', 'cable_tensions'])
+    assert wait_until(lambda: all(p.get_subscription_count() == 1
+                                  for p in (pose, wrench, tensions)), 10.0,
+                      recorder.poll)
+    for _ in range(3):
+        wrench.publish(WrenchStamped())
+        tensions.publish(JointState())
+    assert wait_until(lambda: recorder.topic_counts['/wrench'] == 3
+                      and recorder.topic_counts['/cable_tensions'] == 3, 10.0,
+                      recorder.poll)
+    summary = recorder.close()
     assert summary.topics == {'/pose': 0, '/wrench': 3, '/cable_tensions': 3}
     by_topic = {line.split(':')[0]: line for line in summary.warnings}
     assert sorted(by_topic) == ['/pose', '/wrench'], summary.warnings
