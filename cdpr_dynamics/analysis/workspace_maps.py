@@ -4,10 +4,10 @@ Maps: for each design variant and each slice axis, one figure with a row per qua
 (:data:`QUANTITIES`: the lowest platform mode, the peak receptance, the tension margin) and a
 column per slice (at most :data:`MAX_SLICES`, evenly spread, ends included). A quantity has
 one colour scale in every variant's figure (:func:`colour_limits`), so variants compare by
-colour. Poses without a result (status not ``ok``) are white and hatched, feasible poses
-without a value (e.g. no platform mode in the band) white; the legend says so. The frame's
-outline and the anchors (projected on the slice plane) are drawn. Maps need a grid (not
-``--poses``).
+colour. Poses whose status is not ``ok`` are hatched (white where they leave no value),
+feasible poses without a value (e.g. no platform mode in the band) white; the legend says so.
+The frame's outline and the anchors (projected on the slice plane) are drawn. Maps need a grid
+(not ``--poses``).
 """
 from __future__ import annotations
 

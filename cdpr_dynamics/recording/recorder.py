@@ -10,8 +10,9 @@ every chunk written before.
 
 Messages published before the recorder subscribed are not in the file (DDS delivers a late
 subscriber only what transient-local publishers keep): at close the recorder warns, naming the
-topic, where a subscribed topic got no message, or where the first message of a topic's only
-publisher was not its first (its publication sequence number says how many came before).
+topic, where a subscribed topic with volatile publishers got no message, or where the first
+message of a topic's only publisher was not its first (its publication sequence number says
+how many came before; a transient-local publisher delivers only the history it keeps).
 
 Timestamps: ``log_time`` is the receive time on the recorder node's clock; ``publish_time`` the
 publisher's send time (the DDS source timestamp, as rosbag2 records it), or the receive time
@@ -360,9 +361,9 @@ class Recorder:
             latched = bool(t.qos) and all(q['durability'] == 'transient_local' for q in t.qos)
             kept = ' (its publishers keep only their last messages for late subscribers)' \
                 if latched else ''
-            if t.count == 0:
-                yield (f'{t.name}: no message recorded although it has a publisher; a message '
-                       f'published before the recorder subscribed is not in the file{kept}')
+            if t.count == 0 and not latched:    # a latched history would have been delivered
+                yield (f'{t.name}: no message recorded although it has a publisher; one it '
+                       f'published before the recorder subscribed is not in the file')
             elif len(t.qos) == 1 and t.first_sequence > 1:
                 yield (f'{t.name}: the first {t.first_sequence - 1} message(s) of its publisher '
                        f'came before the recorder subscribed and are not in the file{kept}')
