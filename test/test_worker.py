@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -211,3 +212,28 @@ def test_quaternions_agree_with_scipy():
             expected = Rotation.from_rotvec(theta) * expected
         np.testing.assert_allclose(rotated_quaternion(rotation, theta), expected.as_quat(),
                                    atol=2e-15, rtol=0)
+
+
+def test_cancel_kills_the_running_job_and_drops_a_queued_one_then_serves_the_next(worker):
+    """A running job cancelled ends with JobCancelled and its reason (its child killed); a
+    queued one is dropped without running; the next job is served by a new child."""
+    from cdpr_dynamics.ros.worker import JobCancelled
+    settings = load_settings(REPO / 'config' / 'paper_cdpr.yaml')
+    eq = equilibrium(settings)
+    long = settings.replace(n_points=20000)         # fem_sag 400: seconds of work
+    running = worker.submit('frf', long, eq, 'fem_sag', 400)
+    queued = worker.submit('frf', long, eq, 'fem_sag', 400)
+    deadline = time.monotonic() + TIMEOUT_S
+    while worker.running_s(running) == 0.0:
+        assert time.monotonic() < deadline, 'the first job never started'
+        time.sleep(0.01)
+    assert worker.running_s(queued) == 0.0
+    assert worker.cancel(queued, 'superseded')
+    assert worker.cancel(running, 'over its time budget of 1 s')
+    with pytest.raises(JobCancelled, match='over its time budget of 1 s'):
+        running.result(TIMEOUT_S)
+    assert queued.cancelled()
+    got = worker.submit('modes', settings, eq, 'fem', 4, 1000).result(TIMEOUT_S)
+    found = system_modes(settings, build_system(settings, eq, 'fem', 4))
+    np.testing.assert_allclose(got['frequency_hz'], found.frequency_hz, rtol=1e-12)
+    assert not worker.cancel(running, 'again')        # done: nothing to cancel

@@ -144,6 +144,14 @@ class FrfServer:
         future.add_done_callback(self._wake)
         return future
 
+    def cancel_over_budget(self, budget_s: float) -> None:
+        """Cancel the worker's job of a waiting call that has run longer than ``budget_s``
+        (its callers are answered with the reason)."""
+        for call in self._pending:
+            if (call.future is not None and not call.future.done()
+                    and self._worker.running_s(call.future) > budget_s):
+                self._worker.cancel(call.future, f'over its time budget of {budget_s:g} s')
+
     def _deferred(self, call: PendingCall, header) -> None:
         """The executor's reply to a :class:`PendingCall`: keep its header for the answer."""
         call.header = header

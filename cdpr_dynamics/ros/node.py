@@ -44,12 +44,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
-from cdpr_dynamics.analysis.config import node_options, settings_from_params
+from cdpr_dynamics.analysis.config import ConfigError, node_options, settings_from_params
 from cdpr_dynamics.analysis.controller import length_offsets, mode_labels
 from cdpr_dynamics.analysis.live import LivePredictor, PoseUpdate
 from cdpr_dynamics.analysis.pipeline import damping_for, damping_warnings
 from cdpr_dynamics.mechanics.robot import quaternion_to_matrix
-from cdpr_dynamics.ros import diagnostics
+from cdpr_dynamics.ros import budget, diagnostics
 from cdpr_dynamics.ros.diagnostics import InputHealth, Timings
 from cdpr_dynamics.ros.frf_server import FrfServer
 from cdpr_dynamics.ros.parameters import IO_SUFFIX, NODE_NAME, changed, declare_parameters, plain
@@ -68,6 +68,7 @@ from msg_adapters.validation import (InvalidMessage, clip, clock_ns, ns_to_stamp
 
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
+NAME_CHECK_S = 2.0         # after this long at start, the graph is searched for a namesake
 OUTPUT_DEPTH = 1000      # predictions kept for a reliable subscriber that lags: 1 s at 1 kHz
 #                          (a depth of 10 drops what a subscriber busy for 10 ms has not taken)
 MARKERS_PERIOD_S = 0.5    # markers of a new equilibrium at most this often (milliseconds each)
@@ -122,6 +123,7 @@ class DynamicsNode(Node):
         self._held_pose = None
         self.timings = Timings()
         self._modal_warnings: list[str] = []
+        self._budget_warnings: list[str] = []     # a setting over the node's means
         self._shaping_skipped: list[str] = []
         self._logged_warning_kinds = None
         self._lowest_hz = float('nan')
@@ -144,6 +146,7 @@ class DynamicsNode(Node):
         self.wrench_health = InputHealth(logger.get_child('wrench'), diag.WARN)
         self._update_modal()
         self._warm_up()
+        self._check_budget()
 
         sensor = QoSProfile(history=qos_profile_sensor_data.history,
                             depth=self.flat['node.wrench_queue_depth'],
@@ -180,6 +183,7 @@ class DynamicsNode(Node):
         self.diag_dirty = True
         self._diag_last = -np.inf
         self._diag_timer = self.create_timer(CHANGE_PERIOD_S, self.on_diagnostics_timer)
+        self._name_timer = self.create_timer(NAME_CHECK_S, self._check_name)
         self._publish_tensions(self.get_clock().now().to_msg())
         if self._controller_outputs is not None:
             self._publish_controller(self._controller_outputs)
@@ -214,6 +218,10 @@ class DynamicsNode(Node):
             flat, settings, analysis_changed = changed(self.flat, params)
             if analysis_changed:
                 update = self.predictor.set_settings(settings)
+                refused = self._over_budget()
+                if refused:
+                    self.predictor.set_settings(self.settings)
+                    raise ConfigError(f'refused: {refused}')
                 self._settings_token += 1
         except NUMERIC_ERRORS as exc:
             reason = first_line(exc)
@@ -233,6 +241,7 @@ class DynamicsNode(Node):
         if any(p.name in CONTROLLER_PARAMETERS for p in params):
             self._modal_stale = True         # vibration_modes, shapers: the next refresh
         if analysis_changed:
+            self._budget_warnings = []
             self._rebuilt(update)
             self._publish_tensions(self._pose_stamp or self.get_clock().now().to_msg())
             self.get_logger().info(
@@ -240,6 +249,35 @@ class DynamicsNode(Node):
                 + f': {update.method} model, {update.dofs} DOFs')
         self.diag_dirty = True
         return SetParametersResult(successful=True)
+
+    def _over_budget(self) -> str:
+        """Why one wrench on the model in use costs more than the wrenches' period ('')."""
+        period_s, measured = budget.wrench_period_s(self.timings.wrench_times)
+        return budget.over_budget(budget.wrench_cost_s(self.predictor, period_s), period_s,
+                                  measured)
+
+    def _check_budget(self) -> None:
+        """At start: a configuration over the node's means is a model warning (no wrench has
+        come yet; a runtime change over them is refused, :meth:`on_set_parameters`)."""
+        reason = self._over_budget()
+        self._budget_warnings = [f'over budget: {reason}'] if reason else []
+
+    def _check_name(self) -> None:
+        """Once, after discovery has had its time: another node of this name and namespace
+        in the graph is a warning, or (``node.unique_name: refuse``) ends this one."""
+        self._name_timer.cancel()
+        name, namespace = self.get_name(), self.get_namespace()
+        same = sum(1 for n, ns in self.get_node_names_and_namespaces()
+                   if (n, ns) == (name, namespace))
+        if same < 2:
+            return
+        text = (f'another node named {self.get_fully_qualified_name()} is running: each '
+                'input would be predicted twice and set_parameters reach either')
+        if self.flat['node.unique_name'] == 'refuse':
+            raise ConfigError(f'{text} (node.unique_name: refuse)')
+        self._budget_warnings.append(f'name: {text}')
+        self.get_logger().warning(text)
+        self.diag_dirty = True
 
     # -------------------------------------------------------------------------- inputs
 
@@ -367,6 +405,8 @@ class DynamicsNode(Node):
         self.revision += 1
         self._rebuilds += 1
         self.frf.cache.clear()
+        if self._modes_future is not None:       # its model is gone: do not wait for it
+            self._worker.cancel(self._modes_future, 'superseded by a newer model')
         self.timings.rebuild_s.append(sum(update.timings_s.values()))
         self._modal_stale = True
         self.diag_dirty = True
@@ -378,7 +418,8 @@ class DynamicsNode(Node):
         besides /diagnostics: all of them at start and whenever their set changes, and once
         when the last one clears. A warning's kind is its text before the first ':', so a
         number that moves with the pose does not repeat it."""
-        warnings = list(self.predictor.last_update.warnings) + list(self._modal_warnings)
+        warnings = (list(self.predictor.last_update.warnings) + list(self._modal_warnings)
+                    + self._budget_warnings)
         kinds = frozenset(w.split(':', 1)[0] for w in warnings)
         before = self._logged_warning_kinds or frozenset()
         if kinds == before and self._logged_warning_kinds is not None:
@@ -571,6 +612,11 @@ class DynamicsNode(Node):
         name = self.get_name()
         if self._modal_stale and time.monotonic() - self._modes_asked >= self._modes_period_s:
             self._refresh_modal()
+        if (self._modes_future is not None
+                and self._worker.running_s(self._modes_future) > budget.MODES_BUDGET_S):
+            self._worker.cancel(self._modes_future,
+                                f'over its time budget of {budget.MODES_BUDGET_S:g} s')
+        self.frf.cancel_over_budget(budget.FRF_BUDGET_S)
         extra = {'rebuilds': self._rebuilds, 'rebuild': self.flat['node.rebuild']}
         if self._background is not None:
             extra['poses_superseded'] = self._background.superseded
@@ -578,7 +624,7 @@ class DynamicsNode(Node):
         extra.update(self._slack_values())
         modal = {'lowest_hz': self._lowest_hz, 'platform_hz': self._platform_hz,
                  'warnings': self._slack_warnings() + self._modal_warnings
-                 + self._shaping_skipped}
+                 + self._shaping_skipped + self._budget_warnings}
         return [diagnostics.model_status(name, hw, self.predictor, modal, extra),
                 diagnostics.input_status(name, 'pose input', self.pose_health, {}, hw),
                 diagnostics.input_status(name, 'wrench input', self.wrench_health,

@@ -31,7 +31,8 @@ READ_ONLY = {'robot.frame_id', 'robot.anchors', 'robot.attachments', 'robot.init
              'node.wrench_queue_depth', 'node.service_introspection',
              # limits protect the node: a client must not raise them at runtime
              'node.frf_max_points', 'node.frf_max_values', 'node.frf_queue_depth',
-             'node.frf_cache_size', 'node.max_steps_per_wrench', 'node.rebuild'}
+             'node.frf_cache_size', 'node.max_steps_per_wrench', 'node.rebuild',
+             'node.unique_name'}
 
 _TYPE_ONLY = {float: Parameter.Type.DOUBLE, int: Parameter.Type.INTEGER,
               str: Parameter.Type.STRING, list: Parameter.Type.DOUBLE_ARRAY}

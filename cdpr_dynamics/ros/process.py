@@ -283,8 +283,8 @@ def _run(stopper, argv) -> int:
     try:
         node = DynamicsNode(io_arguments=io_arguments(args))
         services.add_node(node)
-        thread = threading.Thread(target=_serve, args=(services, failed), name='cdpr_services',
-                                  daemon=True)
+        thread = threading.Thread(target=_serve, args=(services, failed, stopper),
+                                  name='cdpr_services', daemon=True)
         thread.start()
         try:                                  # the pose and wrench path, alone
             lean = InputLoop(node.context, (node.pose_sub, node.wrench_sub),
@@ -298,7 +298,7 @@ def _run(stopper, argv) -> int:
     except Exception as exc:  # noqa: BLE001 - one line, status 1 (a signal that lands inside
         failed.append(exc)    # a pybind11 call comes out as its RuntimeError: a stop, below)
     finally:
-        if failed and not stopper.signalled:
+        if failed and (stopper.failed or not stopper.signalled):
             print(f'dynamics_node: error: {first_line(failed[0])}', file=sys.stderr)
             status = 1
         stopper.stopping(status)
@@ -315,7 +315,7 @@ def _run(stopper, argv) -> int:
     return status
 
 
-def _serve(executor, failed: list) -> None:
+def _serve(executor, failed: list, stopper) -> None:
     """The services thread: parameters, frequency_response, the worker's answers, the
     diagnostics timer. A callback that raises ends the node as one in the main thread would
     (``failed`` keeps the error for :func:`main`)."""
@@ -326,6 +326,7 @@ def _serve(executor, failed: list) -> None:
         pass
     except Exception as exc:  # noqa: BLE001 - reported by main with one line, status 1
         failed.append(exc)
+        stopper.failed = True      # the main thread's Stopped comes from this, not a signal
         _thread.interrupt_main()
 
 
@@ -388,6 +389,7 @@ class Stopper:
         os._exit(status)
 
     _status = 0
+    failed = False      # stopping because the services thread failed (status 1)
 
     def _watchdog(self):
         try:

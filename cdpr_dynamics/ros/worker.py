@@ -14,9 +14,11 @@ resolved by a pump thread of the parent (which blocks in ``recv`` and so holds n
 the child works).
 
 A child that dies (killed, out of memory) fails the jobs it had with :class:`WorkerError` and
-is started again for the next one. The child ignores SIGINT (a terminal's Ctrl-C goes to the
-whole process group: the parent decides) and ends with its parent (PR_SET_PDEATHSIG on Linux,
-else at the end of its pipe).
+is started again for the next one. :meth:`Worker.cancel` drops a queued job or kills the child
+of the running one (:class:`JobCancelled`): the node cancels a modes job that a newer model
+supersedes and any job over its time budget, so no call waits behind a stale job. The child
+ignores SIGINT (a terminal's Ctrl-C goes to the whole process group: the parent decides) and
+ends with its parent (PR_SET_PDEATHSIG on Linux, else at the end of its pipe).
 """
 from __future__ import annotations
 
@@ -164,6 +166,10 @@ def _serve(conn) -> None:
             return
 
 
+class JobCancelled(WorkerError):
+    """A job cancelled before it answered (superseded, or over its time budget)."""
+
+
 class Worker:
     """One child process serving :data:`JOBS` in order (see the module docstring)."""
 
@@ -173,6 +179,10 @@ class Worker:
         self._process = None
         self._conn = None
         self._closed = False
+        self._lock = threading.Lock()
+        self._running = None            # the future of the job the child is computing
+        self._running_since = 0.0
+        self._cancelled = ''            # why the running job's child was killed
         self._thread = threading.Thread(target=self._pump, name='cdpr_worker', daemon=True)
         self._thread.start()
 
@@ -186,6 +196,24 @@ class Worker:
         else:
             self._jobs.put((future, name, args))
         return future
+
+    def running_s(self, future) -> float:
+        """Seconds the child has been computing ``future``'s job (0 if it is not)."""
+        with self._lock:
+            return time.monotonic() - self._running_since if self._running is future else 0.0
+
+    def cancel(self, future, reason: str) -> bool:
+        """Cancel ``future``'s job: a queued one is dropped (the future cancelled), the running
+        one ends with its child, killed (the next job starts another) and its future raises
+        :class:`JobCancelled` with ``reason``. False where the job is done already."""
+        if future.cancel():
+            return True
+        with self._lock:
+            if self._running is not future or self._process is None:
+                return False
+            self._cancelled = reason
+            self._process.kill()
+        return True
 
     def close(self) -> None:
         """Stop the child (at once: a running job is abandoned) and the pump thread."""
@@ -224,18 +252,31 @@ class Worker:
             try:
                 if self._process is None or not self._process.is_alive():
                     self._start()
+                with self._lock:
+                    self._running, self._running_since = future, time.monotonic()
                 self._conn.send((name, args))
                 ok, value = self._conn.recv()
             except (EOFError, OSError) as exc:
-                code = None if self._process is None else self._process.exitcode
-                self._process = None
+                with self._lock:
+                    process, self._process = self._process, None
+                    cancelled, self._cancelled, self._running = self._cancelled, '', None
+                if cancelled:
+                    if process is not None:
+                        process.join(JOIN_S)
+                    future.set_exception(JobCancelled(cancelled))
+                    continue
+                code = None if process is None else process.exitcode
                 future.set_exception(WorkerError(
                     'the analysis process ended before it answered'
                     + (f' (exit code {code})' if code is not None else f' ({exc})')))
                 continue
             except Exception as exc:  # noqa: BLE001 - e.g. arguments that do not pickle
+                with self._lock:
+                    self._running, self._cancelled = None, ''
                 future.set_exception(WorkerError(f'{type(exc).__name__}: {exc}'))
                 continue
+            with self._lock:       # answered (a cancel that came too late killed an idle child)
+                self._running, self._cancelled = None, ''
             if ok:
                 future.set_result(value)
             else:

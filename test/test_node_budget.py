@@ -1,0 +1,79 @@
+"""What the node can sustain (cdpr_dynamics.ros.budget): the measured cost of a wrench, the
+wrench period, the refusal text; and one name, one node."""
+import signal
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.analysis.live import LivePredictor
+from cdpr_dynamics.ros import budget
+from conftest import PAPER_CONFIG, installed, wait_until
+
+
+def test_the_period_is_the_median_interval_of_recent_wrenches_or_the_nominal_one():
+    now = time.perf_counter()
+    arrivals = now - 0.5 + np.arange(100) * 2e-3          # 500 Hz over the last 0.2 s
+    period, measured = budget.wrench_period_s(arrivals)
+    assert measured and period == pytest.approx(2e-3)
+    assert budget.wrench_period_s(arrivals[:5]) == (budget.NOMINAL_PERIOD_S, False)
+    assert budget.wrench_period_s(arrivals - 10.0) == (budget.NOMINAL_PERIOD_S, False)
+
+
+def test_over_budget_says_the_estimate_and_the_share_dropped():
+    assert budget.over_budget(0.9e-3, 1e-3, True) == ''
+    text = budget.over_budget(4e-3, 1e-3, False)
+    assert text == ('a wrench would cost 4 ms on this model against a wrench period of 1 ms '
+                    '(nominal, until wrenches arrive): about 75 % of the wrenches would be '
+                    'dropped')
+
+
+def test_measuring_the_cost_leaves_the_predictor_as_it_was():
+    predictor = LivePredictor(load_settings(PAPER_CONFIG).replace(method='fem',
+                                                                  elements_per_cable=4))
+    predictor.advance(0, [0.0, 0.0, 30.0])
+    predictor.advance(5_000_000, [0.0, 0.0, 30.0])
+    state = predictor.integrator._state.copy()
+    before = predictor.prediction().displacement_m
+    cost = budget.wrench_cost_s(predictor, 1e-3)
+    assert 0.0 < cost < np.inf
+    np.testing.assert_array_equal(predictor.integrator._state, state)
+    np.testing.assert_array_equal(predictor.prediction().displacement_m, before)
+    predictor.advance(6_000_000, [0.0, 0.0, 30.0])      # its clock was not moved either
+
+
+def _start(ros_env, tmp_path, tag, *rules):
+    log = open(tmp_path / f'{tag}.log', 'w+')
+    command = [installed('dynamics_node'), '--ros-args', '--params-file', str(PAPER_CONFIG),
+               '-p', 'model.method:=spring', *[a for r in rules for a in ('-p', r)]]
+    proc = subprocess.Popen(command, env=ros_env, stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    return proc, tmp_path / f'{tag}.log'
+
+
+@pytest.mark.ros
+def test_a_second_node_of_the_same_name_warns_or_refuses(ros_env, tmp_path):
+    first, first_log = _start(ros_env, tmp_path, 'first')
+    procs = [first]
+    try:
+        wait_until(lambda: 'waiting for pose' in first_log.read_text() or first.poll(), 90,
+                   'the first node')
+        refusing, _ = _start(ros_env, tmp_path, 'refusing', 'node.unique_name:=refuse')
+        procs.append(refusing)
+        assert refusing.wait(90) == 1
+        warning, warning_log = _start(ros_env, tmp_path, 'warning')
+        procs.append(warning)
+        wait_until(lambda: 'another node named' in warning_log.read_text()
+                   or warning.poll() is not None, 90, 'the second node to warn')
+        assert warning.poll() is None
+        text = (tmp_path / 'refusing.log').read_text()
+        assert 'dynamics_node: error: another node named /cdpr_dynamics is running' in text
+        assert 'Traceback' not in text
+        assert 'another node named' not in first_log.read_text()   # the first one runs on
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                proc.wait(30)
