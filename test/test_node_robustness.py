@@ -1,6 +1,7 @@
 """The node in charge of its own time and work: clocks, bounded work, the service, echoes,
 costs and shutdown. The ROS-free cases run in-process in seconds; the node cases start
-``dynamics_node`` as its own process under real DDS (isolated domain, see node_process).
+``dynamics_node`` as its own process under real DDS (an isolated domain,
+:mod:`cdpr_dynamics.ros.process`).
 
     python test/test_node_robustness.py --runs 20     # the shutdown cases 20 times each, as JSON
 
@@ -72,7 +73,7 @@ def send(handler, t_ns, force=(0.0, 0.0, 100.0), now_ns=None):
 # ------------------------------------------------------------------ 1, 2: clocks and stamps
 
 def test_a_stamp_far_ahead_is_rejected_and_does_not_latch(settings):
-    """Finding 1: one wrench stamped in 2038 made every later good wrench 'older'."""
+    """One wrench stamped in 2038 made every later good wrench 'older'."""
     handler = handler_for(settings)
     t = NOW_NS - 10 * S
     for k in range(50):
@@ -86,7 +87,7 @@ def test_a_stamp_far_ahead_is_rejected_and_does_not_latch(settings):
 
 
 def test_a_clock_jump_back_restarts_with_a_warning_keeping_the_state(settings):
-    """Finding 1: a controller restart whose clock jumps back 1 h lost every input."""
+    """A controller restart whose clock jumps back 1 h lost every input."""
     handler = handler_for(settings)
     t = NOW_NS - 3600 * S
     for k in range(2000):
@@ -105,7 +106,7 @@ def test_a_clock_jump_back_restarts_with_a_warning_keeping_the_state(settings):
 
 @pytest.mark.parametrize('what', ['wrench', 'pose'])
 def test_unstamped_inputs_are_rejected_by_default(settings, what):
-    """Finding 2: stamp 0 predicted exactly 0 m under 100 N, status OK."""
+    """Stamp 0 predicted exactly 0 m under 100 N, status OK."""
     handler = handler_for(settings)
     with pytest.raises(InvalidMessage, match='unstamped .*node.zero_stamp') as caught:
         if what == 'wrench':
@@ -142,7 +143,7 @@ def test_a_pose_stamped_in_the_future_does_not_freeze_the_model(settings):
 # --------------------------------------------------------------------- 3, 4: bounded work
 
 def test_steps_per_wrench_are_capped_and_said(settings, monkeypatch):
-    """Finding 3: dt = 1e-6 made a wrench 0.9 s after the last take 900 000 steps (a model
+    """Dt = 1e-6 made a wrench 0.9 s after the last take 900 000 steps (a model
     too large for the held-load closed form, which would take the interval at once)."""
     from cdpr_dynamics.dynamics import held_load
     monkeypatch.setattr(held_load, 'MAX_DOFS', 0)
@@ -167,7 +168,7 @@ def test_steps_per_wrench_are_capped_and_said(settings, monkeypatch):
 
 
 def test_catch_up_after_a_stall_keeps_the_state(settings):
-    """Finding 3: after a 3 s stall the integrator restarted from rest (z = 0, not 8e-5 m);
+    """After a 3 s stall the integrator restarted from rest (z = 0, not 8e-5 m);
     the stall is now stepped whole, in closed form."""
     predictor = LivePredictor(settings)
     for k in range(2000):
@@ -179,7 +180,7 @@ def test_catch_up_after_a_stall_keeps_the_state(settings):
 
 @pytest.mark.parametrize('other', ['spring', 'fem'])
 def test_model_changes_carry_the_state(settings, other):
-    """Finding 4: toggling fem_sag <-> spring reset the prediction to 0 41 times in 56."""
+    """Toggling fem_sag <-> spring reset the prediction to 0 41 times in 56."""
     sag = settings.replace(method='fem_sag', elements_per_cable=4)
     predictor = LivePredictor(sag)
     t = 0
@@ -210,7 +211,7 @@ def test_interior_dofs_follow_the_platform_quasi_statically(settings):
 # ------------------------------------------------------------------------- 5, 6, 7: service
 
 def test_reply_size_is_capped_with_the_numbers():
-    """Finding 5: 10 000 x amplitude_z_m at 20 000 points built a 1.6 GB reply."""
+    """10 000 x amplitude_z_m at 20 000 points built a 1.6 GB reply."""
     assert response_size_error(['amplitude_z_m'] * 100, 20000, 400000) == ''
     assert response_size_error(list(ARRAYS), 20000, 400000) == ''
     assert response_size_error(list(ARRAYS), 20000, 100000) == (
@@ -243,7 +244,7 @@ def test_override_echoes_are_cut():
 # ------------------------------------------------------------------------- 8, 9: echoes, costs
 
 def test_frame_ids_are_cut_in_reasons_and_diagnostics():
-    """Finding 8: a 1 MB frame_id was echoed whole into every log line and diagnostic."""
+    """A 1 MB frame_id was echoed whole into every log line and diagnostic."""
     msg = wrench_message([0.0, 0.0, 1.0], frame_id='f' * 1_000_000)
     with pytest.raises(InvalidMessage) as caught:
         check_frame(msg.header, 'world', 'wrench')
@@ -253,7 +254,7 @@ def test_frame_ids_are_cut_in_reasons_and_diagnostics():
 
 
 def test_closest_tensions_are_bounded_for_any_wrench():
-    """Finding 9: load.external_force_n = [1e100, 0, 0] took 19.8 s in the closest-tensions QP
+    """Load.external_force_n = [1e100, 0, 0] took 19.8 s in the closest-tensions QP
     (and returned the wrong corner: the gradient overflowed)."""
     s = load_settings()
     wt = geometry(s.robot, np.array([0.0, 0.0, 1.25])).structure_matrix
@@ -280,7 +281,7 @@ def test_an_absurd_static_load_is_refused_in_one_line(tmp_path):
 
 
 def test_problem_size_is_refused_up_front_with_the_number():
-    """Finding 9: a 1000-cable config hung every tool (a 45 003-DOF eigen solve)."""
+    """A 1000-cable config hung every tool (a 45 003-DOF eigen solve)."""
     flat = read_params_file(PAPER)
     rng = np.random.default_rng(1)
     flat['robot.anchors'] = rng.uniform(-2, 2, (1000, 3)).ravel().tolist()
@@ -295,7 +296,7 @@ def test_problem_size_is_refused_up_front_with_the_number():
 
 
 def test_feasibility_for_many_cables_needs_no_per_wrench_qp():
-    """Finding 9: a many-cable spring node spent 100-130 ms per wrench in a feasibility QP.
+    """A many-cable spring node spent 100-130 ms per wrench in a feasibility QP.
     Now: slabs reject exactly, the least-norm tensions accept; an LP only near the boundary."""
     s = many_cable_robot(MAX_CABLES)      # test_feasibility's ring of anchors
     geo = geometry(s.robot, np.array([0.0, 0.0, 1.25]), np.eye(3))
@@ -506,8 +507,8 @@ def shutdown_case(tmp_path, case: str) -> dict:
 
 @pytest.mark.parametrize('case', ['sigterm', 'double_sigint', 'frf'])
 def test_signals_under_load_exit_cleanly_within_a_second(tmp_path, case):
-    """Finding 10: SIGTERM under a 2 kHz stream ended in RCLError, status 1, in 4 of 11 runs;
-    during a long FRF call the node exited only after the call, with a traceback."""
+    """SIGTERM under a 2 kHz wrench stream, two SIGINTs close together, a signal during a long
+    FRF call: status 0, no traceback, the process gone within the stop deadline."""
     runs = [shutdown_case(tmp_path, case) for _ in range(SHUTDOWN_RUNS)]
     print(json.dumps(runs))
     for run in runs:
@@ -519,7 +520,7 @@ def test_signals_under_load_exit_cleanly_within_a_second(tmp_path, case):
 
 
 def test_service_under_concurrent_calls_and_parameter_limits(tmp_path):
-    """Findings 6 and 7: 50 concurrent calls from 5 clients are all answered; limits are
+    """50 concurrent calls from 5 clients are all answered; limits are
     read-only; a set_parameters request applies all or none, with at most one rebuild."""
     from rclpy.node import Node
     from rcl_interfaces.msg import Parameter as ParameterMsg
