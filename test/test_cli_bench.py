@@ -32,6 +32,9 @@ def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
     assert modes['counted']['p50_s'] > 0 and modes['eigensolver']['p50_s'] > 0
     replay = {r['method']: r for r in result['replay']}
     assert set(replay) == {'spring', 'fem'} and all(r['inputs'] > 0 for r in replay.values())
+    under = result['underactuated']
+    assert under['statics_at_equilibrium']['p50_s'] > 0 and under['geometrico_static']['p50_s'] > 0
+    assert 'geometrico-static solve' in out.stdout
 
 
 def test_compute_per_wrench_scales_its_load_to_what_the_cables_hold():

@@ -70,7 +70,7 @@ def test_auto_within_the_default_budget(table, path):
         assert measured.error < settings.tolerance, (choice.reason, measured)
         assert choice.warnings == ()
         return
-    assert Path(path).stem == 'sagging_6dof'
+    assert Path(path).stem in ('sagging_6dof', 'cogiro_heavy_sag')
     assert choice.method not in MASSLESS and choice.warnings
     assert 'fem_sag n=25 (582 DOFs) is the most accurate within it' in choice.reason
     for e in table[Path(path).stem]:

@@ -5,7 +5,8 @@
 
 Stages: tension QP (cold, warm), model build per method and size, a 391-point FRF against a
 naive dense solve of (K + i w C - w^2 M) per frequency measured in the same run, a 1000-step
-Newmark time history, and the node's own work (pose update: tensions + model + factorisation;
+Newmark time history, an underactuated robot's statics (at an equilibrium, and the
+geometrico-static solve), and the node's own work (pose update: tensions + model + factorisation;
 one wrench: message check, feasibility, Newmark step, prediction message), cdpr_replay offline
 and, with
 ``--dds``, the live node as a child process (wrench -> prediction latency, its own compute,
@@ -260,6 +261,25 @@ def bench_replay(duration_s: float) -> list[dict]:
     return rows
 
 
+def bench_underactuated(repeat: int) -> dict:
+    """The shipped suspended 4-cable robot (underactuated): the statics at an equilibrium pose
+    (:func:`equilibrium`: balance, slack and stability checks) and the geometrico-static solve
+    from poses 5 cm off it (with the same checks)."""
+    settings = load_settings(Path(default_config_path()).parent / 'suspended_4cable.yaml')
+    at = settings.initial_position_m
+    off = [at + 0.05 * np.array([np.cos(a), np.sin(a), 0.2]) for a in np.linspace(0, 6, 16)]
+    index = iter(range(10 ** 9))
+
+    def balanced():
+        equilibrium(settings, at)
+
+    def solved():
+        equilibrium(settings, off[next(index) % len(off)])
+    return {'config': 'suspended_4cable.yaml',
+            'statics_at_equilibrium': timed(balanced, 20 * repeat),
+            'geometrico_static': timed(solved, 2 * repeat)}
+
+
 def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
     """Every stage; with ``dds_config`` also the live node over DDS (a child process)."""
     repeat = 3 if quick else 30
@@ -275,7 +295,8 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
               'replay': bench_replay(2.0 if quick else 20.0),
               'pulley_pose_update': bench_node.pulley_pose_updates(
                   Path(default_config_path()).parent / 'paper_pulleys.yaml',
-                  n=30 if quick else 300)}
+                  n=30 if quick else 300),
+              'underactuated': bench_underactuated(repeat)}
     if dds_config:
         result['dds'] = bench_node.dds(dds_config, rates=(1000, 5000) if quick else
                                        (1000, 2000, 3000, 5000, 8000),
@@ -339,6 +360,11 @@ def summary(result: dict) -> str:
     for method, row in result['pulley_pose_update'].items():
         lines.append(f"pose update with pulleys {method}: p50 {row['pulleys']['p50_ms']:.3f} ms, "
                      f"without {row['none']['p50_ms']:.3f} ms (x{row['pulleys_over_none']:.2f})")
+    under = result['underactuated']
+    lines.append(f"underactuated ({under['config']}): statics at an equilibrium p50 "
+                 f"{under['statics_at_equilibrium']['p50_s'] * ms:.3f} ms, geometrico-static "
+                 f"solve p50/p99 {under['geometrico_static']['p50_s'] * ms:.2f}/"
+                 f"{under['geometrico_static']['p99_s'] * ms:.2f} ms")
     for row in result['replay']:
         lines.append(f"cdpr_replay offline {row['method']} n={row['elements_per_cable']}: "
                      f"{row['messages_per_s']:.0f} messages/s ({row['times_real_time']:.0f}x "

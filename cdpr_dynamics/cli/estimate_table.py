@@ -29,7 +29,7 @@ from cdpr_dynamics.selection.auto import SAFETY, SelectionError
 
 ROOT = Path(__file__).resolve().parents[2]
 ROBOTS = ('config/paper_cdpr.yaml', 'config/low_tension_cdpr.yaml', 'test/data/rigid_cdpr.yaml',
-          'test/data/sagging_6dof.yaml')
+          'test/data/sagging_6dof.yaml', 'test/data/cogiro_heavy_sag.yaml')
 MODELS = (('spring', 1), ('fem', 4), ('fem', 8), ('fem', 16), ('catenary_exact', 1),
           ('fem_sag', 4), ('fem_sag', 8), ('fem_sag', 16))
 
