@@ -193,7 +193,8 @@ class _Pose:
 
 
 def _restore(robot: Robot, pose: _Pose, lengths_m: np.ndarray) -> _Pose | None:
-    """The pose moved back onto |l_i| = L_i by Gauss-Newton (least-norm steps), or None."""
+    """The pose moved back onto the cable lengths L_i by Gauss-Newton (least-norm steps), or
+    None."""
     for _ in range(RESTORE_ITERATIONS):
         miss = pose.geo.cable_length_m - lengths_m
         if np.all(np.abs(miss) <= RESTORE_RTOL * lengths_m):
