@@ -49,8 +49,7 @@ from cdpr_dynamics.mechanics.robot import (matrix_to_quaternion, quaternion_prod
                                            rotation_vector_quaternion, row_norm)
 from cdpr_dynamics.selection.auto import choose_model
 from cdpr_dynamics.mechanics.statics import structure_of
-from cdpr_dynamics.mechanics.underactuated import (HeldWrenchSet, is_underactuated,
-                                                   required_wrench_at)
+from cdpr_dynamics.mechanics.underactuated import HeldWrenchSet, is_underactuated
 
 FALLBACK_METHOD = 'spring'
 MAX_STEPS_PER_WRENCH = 1000    # default of node.max_steps_per_wrench (1 s at dt = 1 ms)
@@ -710,8 +709,8 @@ def wrench_set_at(settings: Settings, eq: Equilibrium) -> WrenchSet:
     if is_underactuated(s.robot):
         return HeldWrenchSet(eq.geometry.structure_matrix if chord else _tangent_structure(eq),
                              s.tension_min_n, s.tension_max_n,
-                             required_wrench_at(s.robot, eq.geometry.rotation,
-                                                s.external_force_n, s.external_moment_nm))
+                             required_wrench(s.robot, s.external_force_n,
+                                             s.external_moment_nm, eq.geometry.rotation))
     return WrenchSet(eq.geometry.structure_matrix if chord else _tangent_structure(eq),
                      s.tension_min_n, s.tension_max_n,
                      required_wrench(s.robot, s.external_force_n, s.external_moment_nm,

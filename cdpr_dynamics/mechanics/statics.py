@@ -208,11 +208,13 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
                                f'fold of its catenary (T = {tension[i]:.4g} N: the least '
                                'tension it can have at this pose)')
         if n < ndof:
-            reach = _range_projector(a_mat)
+            basis = np.linalg.svd(a_mat, full_matrices=False)[0]         # (d, n)
+            reach = basis @ basis.T
             residual_in = reach @ residual
+            a_qp = _rows(basis, a_mat)
         else:
-            residual_in = residual
-        proposal = qp.solve(a_mat, a_mat @ tension - residual_in, rho, tension)
+            residual_in, a_qp, basis = residual, a_mat, None
+        proposal = qp.solve(a_qp, _rows(basis, a_mat @ tension - residual), rho, tension)
         if not proposal.feasible:
             raise StaticsError(f'no sag-consistent tension distribution in [{t_min_n:g}, '
                                f'{t_max_n:g}] N (sagged cables, SQP iteration {iterations}): '
@@ -221,7 +223,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
         size = _max(np.abs(residual_in) / tol)
         if size <= 1.0 and _max(np.abs(step)) <= step_tol and rho > 0.0:
             rho = 0.0           # a proximal step is short by 1/(1 + rho): judge the plain one
-            proposal = qp.solve(a_mat, a_mat @ tension - residual_in, rho, tension)
+            proposal = qp.solve(a_qp, _rows(basis, a_mat @ tension - residual), rho, tension)
             step = proposal.tension_n - tension
         if size <= 1.0 and _max(np.abs(step)) <= step_tol:
             return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
@@ -268,11 +270,14 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
                        f'{reached[worst]:.3g}){cause}')
 
 
-def _range_projector(a_mat: np.ndarray) -> np.ndarray:
-    """(d, d) orthogonal projector on the range of ``a_mat`` (d, n): the wrenches n < d cables
-    can produce."""
-    basis = np.linalg.svd(a_mat, full_matrices=False)[0]
-    return basis @ basis.T
+def _rows(basis: np.ndarray | None, rows: np.ndarray) -> np.ndarray:
+    """``rows`` (d, ...) on the columns of ``basis`` (d, n), the directions n < d cables reach,
+    then d - n rows of zeros (the balance the step QP can meet exactly); or as they are."""
+    if basis is None:
+        return rows
+    out = np.zeros(rows.shape)
+    out[:basis.shape[1]] = basis.T @ rows
+    return out
 
 
 def _unreached(residual: np.ndarray, scale: np.ndarray) -> tuple[str, ...]:

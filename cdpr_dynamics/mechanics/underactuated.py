@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cdpr_dynamics.mechanics.robot import (DOF_NAMES, Geometry, GeometryError, Robot, geometry,
-                                           skew)
+                                           required_wrench, skew)
 from cdpr_dynamics.models.base import axial_transverse
 
 #: the pose is an equilibrium where |W^T T - w| is below this fraction of the weight
@@ -96,25 +96,6 @@ def is_underactuated(robot: Robot) -> bool:
     return robot.n_cables < robot.platform_dofs
 
 
-def center_of_mass(robot: Robot) -> np.ndarray:
-    """The platform's centre of mass (3,) in the platform frame; zero where the robot gives
-    none (its reference point)."""
-    return np.asarray(getattr(robot, 'center_of_mass_m', np.zeros(3)), dtype=float)
-
-
-def required_wrench_at(robot: Robot, rotation: np.ndarray, external_force_n=(0.0, 0.0, 0.0),
-                       external_moment_nm=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """The wrench (d,) the cables must supply at orientation R: -(m g + f_e) and, for a rigid
-    platform, -((R c) x m g + tau_e)."""
-    weight = robot.mass_kg * np.asarray(robot.gravity_m_s2, dtype=float)
-    force = -(weight + np.asarray(external_force_n, dtype=float))
-    if robot.point_mass:
-        return force
-    arm = np.asarray(rotation, dtype=float) @ center_of_mass(robot)
-    return np.concatenate([force, -(np.cross(arm, weight)
-                                    + np.asarray(external_moment_nm, dtype=float))])
-
-
 def balance_tensions(structure_matrix: np.ndarray, wrench: np.ndarray):
     """(T (n,), residual (d,)): the least-squares tensions of W^T T = w (W^T of full column
     rank: the normal equations) and W^T T - w."""
@@ -140,7 +121,7 @@ def loaded_stiffness(robot: Robot, geo: Geometry, tension_n: np.ndarray,
         force = tension_n[:, None] * unit
         turn = np.einsum('cij,cjk->ik', skew(force), skew(geo.lever_m))
         weight = robot.mass_kg * np.asarray(robot.gravity_m_s2, dtype=float)
-        turn += skew(weight) @ skew(geo.rotation @ center_of_mass(robot))
+        turn += skew(weight) @ skew(geo.rotation @ robot.center_of_mass_m)
         k[3:, 3:] -= 0.5 * (turn + turn.T)
     return 0.5 * (k + k.T)
 
@@ -213,7 +194,7 @@ def _energy(robot: Robot, pose: _Pose, force_n: np.ndarray, moment_nm: np.ndarra
     weight = robot.mass_kg * np.asarray(robot.gravity_m_s2, dtype=float)
     energy = -float((weight + force_n) @ pose.position)
     if not robot.point_mass:
-        energy -= float(weight @ (pose.rotation @ center_of_mass(robot)))
+        energy -= float(weight @ (pose.rotation @ robot.center_of_mass_m))
         energy -= float(moment_nm @ pose.theta)
     return energy
 
@@ -223,7 +204,7 @@ def _scale(robot: Robot, geo: Geometry, wrench: np.ndarray) -> np.ndarray:
     the weight times the largest lever arm (N m)."""
     weight = max(float(np.linalg.norm(wrench[:3])), 1e-12)
     arm = max(float(np.max(np.linalg.norm(geo.lever_m, axis=1), initial=0.0)),
-              float(np.linalg.norm(center_of_mass(robot))), 1e-3)
+              float(np.linalg.norm(robot.center_of_mass_m)), 1e-3)
     return np.array([weight] * 3 + [weight * arm] * (wrench.size - 3))
 
 
@@ -245,7 +226,7 @@ def geometrico_static(robot: Robot, position_m, rotation=None,
     pose, iterations = start, 0
     while True:
         geo = pose.geo
-        wrench = required_wrench_at(robot, pose.rotation, force, moment)
+        wrench = required_wrench(robot, force, moment, pose.rotation)
         tension, residual = balance_tensions(geo.structure_matrix, wrench)
         free = np.linalg.svd(geo.structure_matrix)[0][:, robot.n_cables:]   # lengths kept
         reduced = free.T @ residual
@@ -289,7 +270,7 @@ def balance(robot: Robot, geo: Geometry, tension_min_n: float, tension_max_n: fl
     balances, else :func:`geometrico_static`'s; checked for slack and the tension bound
     (raises :class:`UnderactuatedError` naming the cable). Its stability is the caller's
     check, on the stiffness of its model (:func:`unstable_direction`)."""
-    wrench = required_wrench_at(robot, geo.rotation, external_force_n, external_moment_nm)
+    wrench = required_wrench(robot, external_force_n, external_moment_nm, geo.rotation)
     tension, residual = balance_tensions(geo.structure_matrix, wrench)
     if np.all(np.abs(residual) <= BALANCE_RTOL * _scale(robot, geo, wrench)):
         found = Balance(geo, tension, residual, 0.0, 0.0, 0)
