@@ -347,7 +347,7 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
                     summary.rebuilds += int(update.rebuilt)
                     eq = predictor.eq
                     writer.write(tensions_topic, tensions_message(
-                        eq.geometry.length_m, eq.tensions.tension_n, msg.header.stamp,
+                        eq.geometry.cable_length_m, eq.tensions.tension_n, msg.header.stamp,
                         frame_id), t, t)
             else:
                 summary.wrenches += 1

@@ -435,8 +435,8 @@ class DynamicsNode(Node):
         """``cable_tensions`` and ``cable_length_offsets`` of the model in use."""
         predictor = self.predictor
         eq = predictor.eq
-        self.tensions_pub.publish(tensions_message(eq.geometry.length_m, eq.tensions.tension_n,
-                                                   stamp, self.frame_id))
+        self.tensions_pub.publish(tensions_message(eq.geometry.cable_length_m,
+                                                   eq.tensions.tension_n, stamp, self.frame_id))
         self.offsets_pub.publish(length_offsets_message(
             length_offsets(eq), predictor.stretch_rate_m_s(), predictor.cable_force_n(), stamp,
             self.frame_id))
