@@ -71,9 +71,10 @@ def test_pendulum_robot_on_one_vertical_cable():
                  'robot.mass_kg': 5.0, 'robot.initial_position': [0.0, 0.0, 1.0],
                  'tension.min_n': 1.0})
     settings = settings_from_params(flat)
-    with pytest.raises(AnalysisError, match='rank 1 < 3 platform DOFs'):
-        equilibrium(settings)        # as a robot it holds nothing sideways: refused
-    # the models themselves still describe the pendulum the mass hangs as
+    # an underactuated robot: the one cable carries the weight, gravity holds the sideways DOFs
+    robot_eq = equilibrium(settings)
+    assert robot_eq.tensions.tension_n == pytest.approx([5 * 9.81], rel=1e-9)
+    # the models describe the pendulum the mass hangs as
     geo = geometry(settings.robot, settings.initial_position_m)
     tension = np.array([5 * 9.81])
     cables = CableSet(geo.chord_m, tension, settings.cable.ea_n,
