@@ -11,10 +11,10 @@ from cdpr_dynamics.analysis.pipeline import AnalysisError
 from cdpr_dynamics.analysis.config import ConfigError
 from cdpr_dynamics.dynamics.system import DynamicsError
 from cdpr_dynamics.analysis.live import LivePredictor, PoseUpdate
-from msg_adapters.pose import read_pose
+from msg_adapters.pose import check_pose, pose_fields
 from msg_adapters.stamps import StampClock, StampPolicy
 from msg_adapters.validation import InvalidMessage, clip
-from msg_adapters.wrench import read_wrench
+from msg_adapters.wrench import check_wrench, wrench_fields
 
 #: Failures of the numerics on a state: the input is rejected, the last good state kept.
 NUMERIC_ERRORS = (AnalysisError, ConfigError, DynamicsError, ValueError, np.linalg.LinAlgError)
@@ -72,9 +72,15 @@ class InputHandler:
         """Move the model to the pose; rebuilds only when it moved more than the tolerance.
         ``move(position_m, quaternion=...)``: what moves it (default the predictor's
         ``update_pose``; the node's background rebuild queues it instead)."""
+        return self.pose_values(*pose_fields(msg), now_ns, move)
+
+    def pose_values(self, stamp_ns: int, frame_id: str, values: tuple,
+                    now_ns: int | None = None, move=None) -> PoseUpdate:
+        """:meth:`pose` of a pose's fields (:func:`~msg_adapters.pose.pose_fields`)."""
         self.notice = ''
         try:
-            pose = read_pose(msg, self.frame_id, self.quaternion_tolerance)
+            pose = check_pose(stamp_ns, frame_id, values, self.frame_id,
+                              self.quaternion_tolerance)
             stamp = self.pose_clock.check(pose.stamp_ns, now_ns)
             update = (move or self.predictor.update_pose)(pose.position_m,
                                                           quaternion=pose.quaternion)
@@ -90,9 +96,14 @@ class InputHandler:
 
     def wrench(self, msg, now_ns: int | None = None) -> np.ndarray:
         """Advance the integrator to the wrench's time; the displacement (3,) m there."""
+        return self.wrench_values(*wrench_fields(msg), now_ns)
+
+    def wrench_values(self, stamp_ns: int, frame_id: str, values: tuple,
+                      now_ns: int | None = None) -> np.ndarray:
+        """:meth:`wrench` of a wrench's fields (:func:`~msg_adapters.wrench.wrench_fields`)."""
         self.notice = ''
         try:
-            wrench = read_wrench(msg, self.frame_id)
+            wrench = check_wrench(stamp_ns, frame_id, values, self.frame_id)
             stamp = self.wrench_clock.check(wrench.stamp_ns, now_ns)
             reason = self.predictor.wrench_reason(wrench.force_n, wrench.moment_nm)
             if reason:

@@ -33,6 +33,7 @@ import json
 import math
 import os
 import re
+import struct
 import sys
 from functools import lru_cache
 from typing import Iterable, Mapping, Sequence
@@ -343,3 +344,249 @@ def rosbag2_serialized_metadata(
         'ros_distro': ros_distro or os.environ.get('ROS_DISTRO') or 'jazzy',
     }
     return yaml.safe_dump(info, default_flow_style=False, sort_keys=False).strip()
+
+
+# ----------------------------------------------------------------------------- CDR checks
+
+class CdrError(ValueError):
+    """Bytes that are not a CDR message of the channel's type; says where they fail."""
+
+
+_CDR_SIZES = {'bool': 1, 'byte': 1, 'char': 1, 'int8': 1, 'uint8': 1, 'int16': 2,
+              'uint16': 2, 'int32': 4, 'uint32': 4, 'float32': 4, 'int64': 8, 'uint64': 8,
+              'float64': 8}
+_ARRAY = re.compile(r'^(.*?)\[(<=)?(\d*)\]$')
+_ENCAPSULATIONS = {b'\x00\x00': '>', b'\x00\x01': '<'}    # plain CDR, big / little endian
+#: trailing bytes a CDR message may carry after its last field (padding to 4 bytes)
+MAX_CDR_PADDING = 3
+
+
+def _definition_sections(type_name: str, definition: str) -> dict:
+    """Type name (``pkg/Type``) -> its field lines, from a complete ``ros2msg`` definition."""
+    package, _, name = split_type_name(type_name)
+    sections = {f'{package}/{name}': []}
+    current = sections[f'{package}/{name}']
+    for line in definition.splitlines():
+        text = line.split('#', 1)[0].strip()
+        if not text or set(text) == {'='}:
+            continue
+        if text.startswith('MSG:'):
+            dep_package, _, dep_name = split_type_name(text[4:].strip())
+            current = sections.setdefault(f'{dep_package}/{dep_name}', [])
+            continue
+        current.append(text)
+    return sections
+
+
+def _field_spec(token: str, package: str):
+    """(base type, string bound, array kind, count): array kind None, 'fixed' or 'sequence'."""
+    kind, count = None, None
+    match = _ARRAY.match(token)
+    if match:
+        token, bounded, digits = match.groups()
+        kind = 'fixed' if digits and not bounded else 'sequence'
+        count = int(digits) if digits else None
+    bound = None
+    if token.startswith(('string<=', 'wstring<=')):
+        token, bound = token.split('<=')
+        bound = int(bound)
+    if token not in _CDR_SIZES and token not in ('string', 'wstring'):
+        if '/' not in token:
+            token = 'std_msgs/Header' if token == 'Header' else f'{package}/{token}'
+        dep_package, _, dep_name = split_type_name(token)
+        token = f'{dep_package}/{dep_name}'
+    return token, bound, kind, count
+
+
+def cdr_fields(type_name: str, definition: str) -> dict:
+    """Type (``pkg/Type``) -> list of (name, base type, string bound, array kind, count) of the
+    main type and every type it uses, from its ``ros2msg`` definition (constants left out).
+    Raises :class:`CdrError` where the definition lacks a type it uses."""
+    sections = _definition_sections(type_name, definition)
+    out = {}
+    for owner, lines in sections.items():
+        package = owner.split('/')[0]
+        fields = []
+        for text in lines:
+            parts = text.split()
+            if len(parts) < 2 or '=' in parts[1] or (len(parts) > 2 and parts[2].startswith('=')):
+                continue      # a constant (NAME=value)
+            try:
+                fields.append((parts[1], *_field_spec(parts[0], package)))
+            except SchemaError as err:
+                raise CdrError(f'{type_name}: {err}') from None
+        out[owner] = fields
+    for owner, fields in out.items():
+        for field in fields:
+            if field[1] not in _CDR_SIZES and field[1] not in ('string', 'wstring') \
+                    and field[1] not in out:
+                raise CdrError(f'{type_name}: the definition lacks {field[1]} (used in {owner})')
+    return out
+
+
+def cdr_checker(type_name: str, definition: str):
+    """A function ``check(data)`` that raises :class:`CdrError` unless ``data`` is one whole
+    CDR message of the type (``ros2msg`` ``definition``): encapsulation header, every field in
+    bounds at its alignment, strings terminated and within their bounds, sequences within
+    theirs, and at most :data:`MAX_CDR_PADDING` bytes after the last field."""
+    types = cdr_fields(type_name, definition)
+    package, _, name = split_type_name(type_name)
+    main = f'{package}/{name}'
+
+    def check(data) -> None:
+        data = bytes(data)
+        order = _ENCAPSULATIONS.get(data[:2])
+        if order is None or len(data) < 4:
+            raise CdrError(f'{len(data)} bytes that do not start with a plain CDR header')
+        end = _walk(types, main, data, 4, order, 4)
+        if len(data) - end > MAX_CDR_PADDING:
+            raise CdrError(f'{len(data) - 4} bytes of data, a {name} here ends after '
+                           f'{end - 4} (the bytes are of another type)')
+    return check
+
+
+def _need(data, position: int, size: int, what: str) -> None:
+    if position + size > len(data):
+        raise CdrError(f'{what} at byte {position - 4} overruns the {len(data) - 4} bytes '
+                       'of data')
+
+
+def _aligned(position: int, size: int) -> int:
+    return 4 + (-(-(position - 4) // size)) * size
+
+
+def _walk(types: dict, owner: str, data: bytes, position: int, order: str, depth: int) -> int:
+    fields = types[owner]
+    if not fields:    # an empty message carries one byte
+        _need(data, position, 1, owner)
+        return position + 1
+    for name, base, bound, kind, count in fields:
+        what = f'{owner.split("/")[-1]}.{name}'
+        if kind is not None and kind != 'fixed':
+            position = _aligned(position, 4)
+            _need(data, position, 4, what)
+            (count_read,) = struct.unpack_from(order + 'I', data, position)
+            position += 4
+            if count is not None and count_read > count:
+                raise CdrError(f'{what} holds {count_read} items, at most {count} allowed')
+            items = count_read
+        else:
+            items = 1 if kind is None else count
+        if base in _CDR_SIZES:
+            size = _CDR_SIZES[base]
+            if items:
+                position = _aligned(position, size)
+                _need(data, position, size * items, what)
+                position += size * items
+            continue
+        for _ in range(items):
+            if base in ('string', 'wstring'):
+                position = _aligned(position, 4)
+                _need(data, position, 4, what)
+                (length,) = struct.unpack_from(order + 'I', data, position)
+                position += 4
+                width = 4 if base == 'wstring' else 1
+                if base == 'string' and length < 1:
+                    raise CdrError(f'{what}: a string of length 0 (no terminating NUL)')
+                _need(data, position, length * width, what)
+                if base == 'string' and data[position + length - 1] != 0:
+                    raise CdrError(f'{what}: string not terminated by NUL')
+                chars = length - 1 if base == 'string' else length
+                if bound is not None and chars > bound:
+                    raise CdrError(f'{what}: string of {chars} characters, at most {bound}')
+                position += length * width
+            else:
+                if depth > 50:
+                    raise CdrError(f'{what}: types nest too deeply')
+                position = _walk(types, base, data, position, order, depth + 1)
+    return position
+
+
+def stamped_values_count(type_name: str, definition: str) -> int | None:
+    """N where the type is a ``std_msgs/Header`` followed by N float64 only (PoseStamped 7,
+    WrenchStamped 6, Vector3Stamped 3: :func:`decode_stamped` reads them), else None."""
+    try:
+        types = cdr_fields(type_name, definition)
+    except CdrError:
+        return None
+    package, _, name = split_type_name(type_name)
+    fields = types[f'{package}/{name}']
+    if not fields or fields[0][1:] != ('std_msgs/Header', None, None, None):
+        return None
+    header = [f[1:] for f in types.get('std_msgs/Header', [])]
+    if header != [('builtin_interfaces/Time', None, None, None), ('string', None, None, None)]:
+        return None
+
+    def doubles(owner) -> int | None:
+        total = 0
+        for _, base, _, kind, count in types[owner]:
+            if kind == 'sequence':
+                return None
+            items = 1 if kind is None else count
+            if base == 'float64':
+                total += items
+            elif base in types:
+                inner = doubles(base)
+                if inner is None:
+                    return None
+                total += inner * items
+            else:
+                return None
+        return total
+
+    count = 0
+    for _, base, _, kind, items in fields[1:]:
+        inner = 1 if base == 'float64' else doubles(base) if base in types else None
+        if inner is None or kind == 'sequence':
+            return None
+        count += inner * (1 if kind is None else items)
+    return count
+
+
+_STAMP_LE, _STAMP_BE = struct.Struct('<iII'), struct.Struct('>iII')
+
+
+def decode_stamped(data: bytes, count: int, type_name: str = 'message'):
+    """(stamp ns, frame id, ``count`` float64 values) of a Header + float64 message's CDR
+    bytes, checked as :func:`cdr_checker` checks them; raises :class:`CdrError`."""
+    order = _ENCAPSULATIONS.get(data[:2])
+    total = len(data)
+    if order is None or total < 16:
+        raise CdrError(f'{total} bytes that do not start with a plain CDR header and stamp')
+    sec, nanosec, length = (_STAMP_LE if order == '<' else _STAMP_BE).unpack_from(data, 4)
+    text_end = 16 + length
+    if length < 1 or text_end > total or data[text_end - 1] != 0:
+        raise CdrError(f'header.frame_id: a string of {length} bytes does not fit the '
+                       f'{total - 4} bytes of data, or lacks its NUL')
+    try:
+        frame_id = data[16:text_end - 1].decode('utf-8')
+    except UnicodeDecodeError:
+        raise CdrError('header.frame_id is not UTF-8') from None
+    start = 4 + ((text_end - 4 + 7) & ~7)
+    end = start + 8 * count
+    if end > total:
+        raise CdrError(f'{total - 4} bytes of data, a {type_name} with this frame_id needs '
+                       f'{end - 4}')
+    if total - end > MAX_CDR_PADDING:
+        raise CdrError(f'{total - 4} bytes of data, a {type_name} with this frame_id ends '
+                       f'after {end - 4} (the bytes are of another type)')
+    return (sec * 1_000_000_000 + nanosec, frame_id,
+            struct.unpack_from(f'{order}{count}d', data, start))
+
+
+def encode_stamped(stamp_ns: int, frame_id: str, values) -> bytes:
+    """CDR bytes (little endian, with the encapsulation header) of a Header + float64 message,
+    as a DDS publisher sends them: Vector3Stamped (3 values), WrenchStamped (6), PoseStamped
+    (7)."""
+    layout, frame = _stamped_layout(frame_id, len(values))
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return layout.pack(b'\x00\x01\x00\x00', sec, nanosec, len(frame), frame, *values)
+
+
+@lru_cache(maxsize=64)
+def _stamped_layout(frame_id: str, count: int) -> tuple:
+    """The struct of a Header + ``count`` float64 message with this frame id, and the frame
+    id's bytes with their NUL (zero padding to the doubles' alignment comes with the struct)."""
+    frame = frame_id.encode('utf-8') + b'\0'
+    padded = len(frame) + (-(12 + len(frame)) % 8)
+    return struct.Struct(f'<4siII{padded}s{count}d'), frame

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 
-from msg_adapters.validation import (InvalidMessage, check_finite, check_frame, check_order,
+from msg_adapters.validation import (InvalidMessage, check_finite, check_frame_id, check_order,
                                      stamp_to_ns)
 
 
@@ -28,19 +28,31 @@ def read_pose(msg: PoseStamped, frame_id: str, quaternion_tolerance: float = 1e-
     infinite values, a quaternion whose norm is off 1 by more than ``quaternion_tolerance``
     (within it the quaternion is normalised).
     """
+    return check_pose(*pose_fields(msg), frame_id, quaternion_tolerance, last_stamp_ns)
+
+
+def pose_fields(msg: PoseStamped) -> tuple:
+    """(stamp ns, frame id, (x, y, z, qx, qy, qz, qw)) of a pose message, unchecked."""
     p, q = msg.pose.position, msg.pose.orientation
-    position = (p.x, p.y, p.z)
-    quaternion = (q.x, q.y, q.z, q.w)
+    return (stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+            (p.x, p.y, p.z, q.x, q.y, q.z, q.w))
+
+
+def check_pose(stamp_ns: int, received_frame_id: str, values: tuple, frame_id: str,
+               quaternion_tolerance: float = 1e-3,
+               last_stamp_ns: int | None = None) -> PoseInput:
+    """:func:`read_pose` of the fields of :func:`pose_fields` (or the same fields decoded from
+    a recording's bytes)."""
+    position, quaternion = values[:3], values[3:]
     check_finite(position, 'pose position')
     check_finite(quaternion, 'pose orientation')
     norm = math.sqrt(sum(v * v for v in quaternion))
     if abs(norm - 1.0) > quaternion_tolerance:
         raise InvalidMessage(f'pose orientation is not a unit quaternion: norm {norm:.6g} '
                              f'(tolerance {quaternion_tolerance:g})', 'quaternion')
-    check_frame(msg.header, frame_id, 'pose')
-    stamp = stamp_to_ns(msg.header.stamp)
-    check_order(stamp, last_stamp_ns, 'pose')
-    return PoseInput(stamp, np.array(position), np.array(quaternion) / norm)
+    check_frame_id(received_frame_id, frame_id, 'pose')
+    check_order(stamp_ns, last_stamp_ns, 'pose')
+    return PoseInput(stamp_ns, np.array(position), np.array(quaternion) / norm)
 
 
 def pose_message(position_m, quaternion=(0.0, 0.0, 0.0, 1.0), frame_id: str = 'world',

@@ -62,8 +62,13 @@ def clip(text: str, limit: int = MAX_ECHO_CHARS) -> str:
 def check_frame(header, frame_id: str, what: str) -> None:
     """Raise :class:`InvalidMessage` unless ``header.frame_id`` is ``frame_id`` (the frame id
     received is echoed cut to :data:`MAX_ECHO_CHARS`)."""
-    if header.frame_id != frame_id:
-        got = clip(repr(header.frame_id)) if header.frame_id else 'an empty frame_id'
+    check_frame_id(header.frame_id, frame_id, what)
+
+
+def check_frame_id(received: str, frame_id: str, what: str) -> None:
+    """:func:`check_frame` of a frame id already read from its header."""
+    if received != frame_id:
+        got = clip(repr(received)) if received else 'an empty frame_id'
         raise InvalidMessage(f'{what} in frame {got}, expected {frame_id!r} (robot.frame_id); '
                              'no transform is applied', 'frame')
 

@@ -6,7 +6,7 @@ from math import isfinite
 
 from geometry_msgs.msg import WrenchStamped
 
-from msg_adapters.validation import check_finite, check_frame, check_order, stamp_to_ns
+from msg_adapters.validation import check_finite, check_frame_id, check_order, stamp_to_ns
 
 
 @dataclass(frozen=True)
@@ -27,16 +27,26 @@ def read_wrench(msg: WrenchStamped, frame_id: str,
     Rejected: NaN or infinite values, a frame other than ``frame_id`` (the wrench is taken in
     the robot frame, no transform is applied), a stamp older than ``last_stamp_ns``.
     """
+    return check_wrench(*wrench_fields(msg), frame_id, last_stamp_ns)
+
+
+def wrench_fields(msg: WrenchStamped) -> tuple:
+    """(stamp ns, frame id, (fx, fy, fz, mx, my, mz)) of a wrench message, unchecked."""
     w = msg.wrench
     f, m = w.force, w.torque
-    values = (f.x, f.y, f.z, m.x, m.y, m.z)
+    header = msg.header
+    return stamp_to_ns(header.stamp), header.frame_id, (f.x, f.y, f.z, m.x, m.y, m.z)
+
+
+def check_wrench(stamp_ns: int, received_frame_id: str, values: tuple, frame_id: str,
+                 last_stamp_ns: int | None = None) -> WrenchInput:
+    """:func:`read_wrench` of the fields of :func:`wrench_fields` (or the same fields decoded
+    from a recording's bytes)."""
     if not all(map(isfinite, values)):       # the common case in one C loop, no generator
         check_finite(values, 'wrench')
-    header = msg.header
-    check_frame(header, frame_id, 'wrench')
-    stamp = stamp_to_ns(header.stamp)
-    check_order(stamp, last_stamp_ns, 'wrench')
-    return WrenchInput(stamp, values[:3], values[3:])
+    check_frame_id(received_frame_id, frame_id, 'wrench')
+    check_order(stamp_ns, last_stamp_ns, 'wrench')
+    return WrenchInput(stamp_ns, values[:3], values[3:])
 
 
 def wrench_message(force_n, moment_nm=(0.0, 0.0, 0.0), frame_id: str = 'world',

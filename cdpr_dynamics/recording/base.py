@@ -87,6 +87,7 @@ class RecordingInfo:
     topics: dict = field(default_factory=dict)   # name -> TopicInfo
     schema_encodings: dict = field(default_factory=dict)  # type -> encoding
     metadata: dict = field(default_factory=dict)  # metadata record name -> dict
+    damage: list = field(default_factory=list)    # what a scan found lost, one line each
 
 
 @dataclass

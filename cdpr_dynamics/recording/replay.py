@@ -31,8 +31,13 @@ spacing divided by ``rate``, after waiting for subscribers.
 """
 from __future__ import annotations
 
+import heapq
+import io
+import itertools
 import json
 import math
+import struct
+import tempfile
 import threading
 import time
 from collections import Counter
@@ -45,15 +50,15 @@ import numpy as np
 from cdpr_dynamics.analysis.config import (NODE_PARAMETER_BY_NAME, Settings, node_options,
                                            read_params_file, settings_from_params)
 from cdpr_dynamics.analysis.live import LivePredictor
-from cdpr_dynamics.recording.base import RecordingError
-from cdpr_dynamics.recording.reader import read_messages, recording_info
+from cdpr_dynamics.recording.base import RecordingError, UndecodableMessage
+from cdpr_dynamics.recording.reader import McapFile, read_messages, recording_info, Salvage
 from cdpr_dynamics.recording.writer import RecordingWriter
 from msg_adapters import diagnostics as diag
-from msg_adapters.displacement import displacement_message, read_displacement
-from msg_adapters.joint_state import read_tensions, tensions_message
-from msg_adapters.pose import pose_message
+from msg_adapters.displacement import read_displacement
 from msg_adapters.inputs import InputHandler
-from msg_adapters.validation import InvalidMessage, stamp_to_ns
+from msg_adapters.joint_state import read_tensions, tensions_message
+from msg_adapters.mcap_schema import CdrError, decode_stamped, encode_stamped
+from msg_adapters.validation import InvalidMessage, ns_to_stamp, stamp_to_ns
 
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
 WRENCH_TYPE = 'geometry_msgs/msg/WrenchStamped'
@@ -190,15 +195,91 @@ def inspect_input(input_path, pose_topic: str | None = None, wrench_topic: str |
     return info, pose, wrench, total
 
 
-def _input_stream(path, pose, wrench, order: str, allow_incomplete: bool, on_bad=None):
-    messages = read_messages(path, {pose: POSE_TYPE, wrench: WRENCH_TYPE}, raw=True,
-                             allow_incomplete=allow_incomplete, on_bad=on_bad)
-    if order == 'stamp':   # header stamps, then log time (stable)
-        return iter(sorted(messages, key=lambda m: (
-            stamp_to_ns(m.message.header.stamp), m.log_time_ns)))
-    if allow_incomplete:   # a scan gives file order
-        return iter(sorted(messages, key=lambda m: m.log_time_ns))
-    return messages
+def _input_stream(path, pose, wrench, allow_incomplete: bool):
+    """Decoded input messages (RawRecordedMessage) in log-time order, for the live replay."""
+    return read_messages(path, {pose: POSE_TYPE, wrench: WRENCH_TYPE}, raw=True,
+                         allow_incomplete=allow_incomplete)
+
+
+# ----------------------------------------------------------------------------- stamp order
+
+#: messages sorted in memory at once by ``--order stamp``; a longer input is sorted in runs of
+#: this many, kept in temporary files beside the output and merged
+RUN_MESSAGES = 100_000
+_RUN_BUFFER = 256 * 1024
+_RUN_HEAD = struct.Struct('<qQQHI')     # stamp key, log time, publish time, channel, length
+_STAMP = {b'\x00\x01': struct.Struct('<iI'), b'\x00\x00': struct.Struct('>iI')}
+
+
+def stamp_key(data: bytes) -> int:
+    """The header stamp (ns) of a stamped message's CDR bytes; -1 for bytes too short to hold
+    one (they are refused later, wherever they sort)."""
+    unpack = _STAMP.get(data[:2])
+    if unpack is None or len(data) < 12:
+        return -1
+    sec, nanosec = unpack.unpack_from(data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+def _spill(run: list, folder: Path):
+    """A sorted run written to an unlinked temporary file in ``folder``."""
+    stream = tempfile.TemporaryFile(dir=folder)
+    pack = _RUN_HEAD.pack
+    buffer = io.BufferedWriter(stream, _RUN_BUFFER)
+    for key, log_time, publish_time, channel, data in run:
+        buffer.write(pack(key, log_time, publish_time, channel, len(data)))
+        buffer.write(data)
+    buffer.flush()
+    buffer.detach()
+    return stream
+
+
+def _read_run(stream):
+    stream.seek(0)
+    reader = io.BufferedReader(stream, _RUN_BUFFER)
+    unpack, size = _RUN_HEAD.unpack, _RUN_HEAD.size
+    try:
+        while True:
+            head = reader.read(size)
+            if not head:
+                return
+            key, log_time, publish_time, channel, length = unpack(head)
+            yield key, log_time, publish_time, channel, reader.read(length)
+    finally:
+        reader.close()
+
+
+def by_stamp(batches, folder: Path, batch_size: int = 4096):
+    """The messages of ``batches`` ((log time, publish time, channel, bytes) lists) in batches
+    sorted by header stamp, then log time, then input order: an external merge sort whose
+    memory is :data:`RUN_MESSAGES` messages whatever the input's length."""
+    run, runs = [], []
+    try:
+        for batch in batches:
+            run.extend((stamp_key(item[3]), *item) for item in batch)
+            if len(run) >= RUN_MESSAGES:
+                run.sort(key=_stamp_order)
+                runs.append(_spill(run, folder))
+                run = []
+        run.sort(key=_stamp_order)
+        if runs:
+            runs.append(_spill(run, folder))
+            run = []
+            items = heapq.merge(*map(_read_run, runs), key=_stamp_order)
+        else:
+            items = iter(run)
+        while True:
+            batch = [item[1:] for item in itertools.islice(items, batch_size)]
+            if not batch:
+                return
+            yield batch
+    finally:
+        for stream in runs:
+            stream.close()
+
+
+def _stamp_order(item) -> tuple:
+    return item[0], item[1]
 
 
 # ----------------------------------------------------------------------------- offline
@@ -233,6 +314,7 @@ class ReplaySummary:
     rejected: Counter = field(default_factory=Counter)  # 'pose:kind' / 'wrench:kind' -> count
     skipped: int = 0            # input messages that did not decode (skip_bad)
     first_skipped: str = ''     # the first one's error
+    salvage: Salvage = field(default_factory=Salvage)   # damage met (allow_incomplete)
     messages_written: int = 0
     bytes: int = 0
     elapsed_s: float = 0.0
@@ -309,7 +391,7 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
     summary = ReplaySummary(input_path, output_path, pose, wrench, order, settings.method,
                             settings.elements_per_cable, predictor.system.dofs)
 
-    with RecordingWriter(output_path, force=force) as writer:
+    with McapFile(input_path) as mcap, RecordingWriter(output_path, force=force) as writer:
         for name in (pose, wrench):
             writer.add_topic(name, info.topics[name].type, info.topics[name].offered_qos_profiles,
                              info.topics[name].type_hash or None)
@@ -323,58 +405,95 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
             'elements_per_cable': str(settings.elements_per_cable),
             'node_options': json.dumps(options.__dict__, sort_keys=True),
             'parameters': json.dumps(parameters or {}, sort_keys=True, default=str)})
-        done = 0
-
-        def on_bad(error):
-            summary.skipped += 1
-            summary.first_skipped = summary.first_skipped or str(error)
-
-        for item in _input_stream(input_path, pose, wrench, order, allow_incomplete,
-                                  on_bad if skip_bad else None):
-            writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
-            msg = item.message
-            t = item.log_time_ns
-            if item.topic == pose:
-                summary.poses += 1
-                try:
-                    update = handler.pose(msg)
-                except InvalidMessage as exc:
-                    summary.rejected[f'pose:{exc.kind}'] += 1
-                    writer.write(DIAGNOSTICS_TOPIC,
-                                 rejection_message('pose', exc, pose, msg.header.stamp), t, t)
-                else:
-                    summary.poses_accepted += 1
-                    summary.rebuilds += int(update.rebuilt)
-                    eq = predictor.eq
-                    writer.write(tensions_topic, tensions_message(
-                        eq.geometry.cable_length_m, eq.tensions.tension_n, msg.header.stamp,
-                        frame_id), t, t)
-            else:
-                summary.wrenches += 1
-                try:
-                    handler.wrench(msg)
-                except InvalidMessage as exc:
-                    summary.rejected[f'wrench:{exc.kind}'] += 1
-                    writer.write(DIAGNOSTICS_TOPIC,
-                                 rejection_message('wrench', exc, wrench, msg.header.stamp),
-                                 t, t)
-                else:
-                    summary.wrenches_accepted += 1
-                    summary.before_first_pose += not summary.poses_accepted
-                    out = predictor.prediction(options.output_point_m)
-                    writer.write(displacement_topic, displacement_message(
-                        out.displacement_m, frame_id, msg.header.stamp), t, t)
-                    writer.write(predicted_pose_topic, pose_message(
-                        out.position_m, out.quaternion, frame_id, msg.header.stamp), t, t)
-            done += 1
-            if progress is not None:
-                progress(done, total)
+        salvage = summary.salvage if allow_incomplete else None
+        if salvage is not None:
+            salvage.damage.extend(mcap.layout.damage)
+        batches = mcap.batches({pose, wrench}, salvage)
+        if order == 'stamp':
+            batches = by_stamp(batches, output_path.parent)
+        _replay_batches(batches, mcap, summary, handler, writer, options, total, progress,
+                        skip_bad)
         written = writer.close()
     summary.dofs = predictor.system.dofs
     summary.messages_written = written.message_count
     summary.bytes = written.bytes
     summary.elapsed_s = time.perf_counter() - start
     return summary
+
+
+def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler,
+                    writer: RecordingWriter, options: NodeOptions, total: int, progress,
+                    skip_bad: bool) -> None:
+    """The loop of :func:`replay_offline`: each input decoded from its bytes (checked against
+    its type: :func:`~msg_adapters.mcap_schema.decode_stamped`), through ``handler``, and the
+    outputs encoded straight to CDR bytes."""
+    predictor = handler.predictor
+    frame_id = handler.frame_id
+    point = options.output_point_m
+    pose, wrench = summary.pose_topic, summary.wrench_topic
+    write_displacement = writer.channel_writer(f'{_namespace(wrench)}/predicted_displacement')
+    write_predicted_pose = writer.channel_writer(f'{_namespace(wrench)}/predicted_pose')
+    tensions_topic = f'{_namespace(pose)}/cable_tensions'
+    routes = {}
+
+    def route(channel_id: int) -> tuple:
+        topic = mcap.channels[channel_id].topic
+        is_pose = topic == pose
+        routes[channel_id] = (is_pose, writer.channel_writer(topic), 7 if is_pose else 6,
+                              POSE_TYPE if is_pose else WRENCH_TYPE)
+        return routes[channel_id]
+
+    index = done = 0
+    for batch in batches:
+        for log_time, publish_time, channel_id, data in batch:
+            is_pose, write_input, count, type_name = routes.get(channel_id) or route(channel_id)
+            index += 1
+            try:
+                stamp_ns, frame, values = decode_stamped(data, count, type_name)
+            except CdrError as err:
+                bad = (f'{mcap.path}: cannot decode message {index - 1} (a {type_name} on '
+                       f'{pose if is_pose else wrench} at log time {log_time}): {err}')
+                if not skip_bad:
+                    raise UndecodableMessage(bad) from None
+                summary.skipped += 1
+                summary.first_skipped = summary.first_skipped or bad
+                continue
+            write_input(data, log_time, publish_time)
+            if is_pose:
+                summary.poses += 1
+                try:
+                    update = handler.pose_values(stamp_ns, frame, values)
+                except InvalidMessage as exc:
+                    summary.rejected[f'pose:{exc.kind}'] += 1
+                    writer.write(DIAGNOSTICS_TOPIC, rejection_message(
+                        'pose', exc, pose, ns_to_stamp(stamp_ns)), log_time, log_time)
+                else:
+                    summary.poses_accepted += 1
+                    summary.rebuilds += int(update.rebuilt)
+                    eq = predictor.eq
+                    writer.write(tensions_topic, tensions_message(
+                        eq.geometry.cable_length_m, eq.tensions.tension_n, ns_to_stamp(stamp_ns),
+                        frame_id), log_time, log_time)
+            else:
+                summary.wrenches += 1
+                try:
+                    handler.wrench_values(stamp_ns, frame, values)
+                except InvalidMessage as exc:
+                    summary.rejected[f'wrench:{exc.kind}'] += 1
+                    writer.write(DIAGNOSTICS_TOPIC, rejection_message(
+                        'wrench', exc, wrench, ns_to_stamp(stamp_ns)), log_time, log_time)
+                else:
+                    summary.wrenches_accepted += 1
+                    summary.before_first_pose += not summary.poses_accepted
+                    out = predictor.prediction(point)
+                    write_displacement(encode_stamped(stamp_ns, frame_id, out.displacement_m),
+                                       log_time, log_time)
+                    write_predicted_pose(encode_stamped(
+                        stamp_ns, frame_id, (*out.position_m, *out.quaternion)),
+                        log_time, log_time)
+        if progress is not None:
+            done = summary.inputs + summary.skipped
+            progress(done, total)
 
 
 # ----------------------------------------------------------------------------- live
@@ -435,7 +554,7 @@ def replay_live(node, input_path, *, rate: float = 1.0, pose_topic: str | None =
             stop.wait(0.02)
         published, first_log, first_wall, last_log, max_late = 0, None, None, None, 0.0
         wall = time.monotonic()
-        for item in _input_stream(input_path, pose, wrench, 'log', allow_incomplete):
+        for item in _input_stream(input_path, pose, wrench, allow_incomplete):
             if first_log is None:
                 first_log, first_wall = item.log_time_ns, time.monotonic()
             due = first_wall + (item.log_time_ns - first_log) * 1e-9 / rate
