@@ -45,7 +45,7 @@ from cdpr_dynamics.analysis.config import read_params_file
 from cdpr_dynamics.recording.base import message_class, RecordingError
 from cdpr_dynamics.recording.cdr import serialize
 from cdpr_dynamics.recording.reader import read_messages, recording_info
-from cdpr_dynamics.recording.writer import RecordingWriter
+from cdpr_dynamics.recording.writer import partial_files, RecordingWriter
 from cdpr_dynamics.analysis.config import ConfigError
 from cdpr_dynamics.recording.replay import (NodeOptions, ReplayError, compare_outputs,
                                             load_replay_config, read_predictions, replay_offline)
@@ -540,34 +540,50 @@ def test_skip_bad_replays_past_an_undecodable_message(tmp_path, ros_env):
     assert summary.skipped == 1 and summary.wrenches == wrenches - 1
 
 
-def long_input(path: Path, n: int = 5000) -> None:
-    """One pose then ``n`` wrenches 1 ms apart: a replay that takes seconds."""
-    with RecordingWriter(path) as writer:
-        writer.add_topic('/pose', POSE)
-        writer.add_topic('/wrench', WRENCH)
-        pose = next(m for m in read_messages(golden('step_wrench'), {'pose': POSE}, raw=True))
-        writer.write('/pose', pose.data, scenarios.T0_NS)
-        for k in range(1, n + 1):
-            msg = message_class(WRENCH)()
-            msg.header.frame_id = 'world'
-            msg.header.stamp = stamp_msg(scenarios.T0_NS + k * 10**6)
-            msg.wrench.force.z = 10.0
-            writer.write('/wrench', msg, scenarios.T0_NS + k * 10**6)
+def file_messages(path: Path) -> list:
+    """(topic, log time, publish time, bytes) of every message, in file order, read with the
+    mcap library's own reader."""
+    with open(path, 'rb') as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        return [(channel.topic, m.log_time, m.publish_time, m.data)
+                for _, channel, m in reader.iter_messages(log_time_order=False)]
 
 
-@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
-def test_signal_ends_an_offline_replay_with_130_and_no_output(sig, tmp_path, ros_env):
-    source = tmp_path / 'long.mcap'
-    long_input(source)
-    folder = tmp_path / 'out'
-    folder.mkdir()
-    out = folder / 'never.mcap'
-    proc = subprocess.Popen([PYTHON, '-m', 'cdpr_dynamics.cli.replay', str(source), '--output',
-                             str(out), '--no-progress', *GOLDEN_ARGS], env=ros_env,
+@pytest.fixture(scope='module')
+def minute_log(tmp_path_factory) -> tuple[Path, list]:
+    """60 s of 1 kHz wrenches and 50 Hz poses (63 000 inputs: a replay of seconds), and the
+    messages of its uninterrupted replay with the golden settings."""
+    folder = tmp_path_factory.mktemp('minute')
+    source = folder / 'minute.mcap'
+    scenarios.write_long_log(source, 60.0)
+    settings, options = golden_settings()
+    reference = folder / 'reference.mcap'
+    replay_offline(source, reference, settings, options=options)
+    return source, file_messages(reference)
+
+
+def start_replay(source: Path, out: Path, env: dict, *extra) -> subprocess.Popen:
+    return subprocess.Popen([PYTHON, '-m', 'cdpr_dynamics.cli.replay', str(source), '--output',
+                             str(out), '--no-progress', *GOLDEN_ARGS, *extra], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def partial_size(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.iterdir() if '.partial-' in p.name)
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM, signal.SIGKILL],
+                         ids=['SIGINT', 'SIGTERM', 'SIGKILL'])
+def test_interrupted_replay_resumes_to_the_uninterrupted_output(sig, minute_log, tmp_path,
+                                                                ros_env):
+    """A signal mid-replay leaves no output but its partial file; --resume continues it to
+    the output an uninterrupted replay writes, message for message."""
+    source, reference = minute_log
+    out = tmp_path / 'never.mcap'
+    proc = start_replay(source, out, ros_env)
     try:
-        wait_until(lambda: leftovers(folder) or proc.poll() is not None, 60,
-                   'the replay to start writing')
+        wait_until(lambda: partial_size(tmp_path) > 1_500_000 or proc.poll() is not None, 120,
+                   'the replay to write its first chunks')
         assert proc.poll() is None, 'the replay ended before the signal'
         proc.send_signal(sig)
         stdout, stderr = proc.communicate(timeout=30)
@@ -575,9 +591,54 @@ def test_signal_ends_an_offline_replay_with_130_and_no_output(sig, tmp_path, ros
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert proc.returncode == 130, (stdout, stderr)
-    assert stderr.strip() == 'cdpr_replay: error: interrupted; no output written', stderr
-    assert not out.exists() and leftovers(folder) == []
+    [partial] = leftovers(tmp_path)
+    assert not out.exists()
+    if sig == signal.SIGKILL:
+        assert proc.returncode == -signal.SIGKILL
+    else:
+        assert proc.returncode == 130, (stdout, stderr)
+        err = stderr.strip()
+        assert err.count('\n') == 0, err
+        assert err.startswith('cdpr_replay: error: interrupted after '), err
+        assert f'{partial} is kept: --resume continues it; no output written' in err, err
+    result = replay_cli(source, '--output', out, '--no-progress', '--resume', *GOLDEN_ARGS,
+                        env=ros_env, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert f'resumed {tmp_path / partial}: kept its output of ' in result.stdout, result.stdout
+    assert leftovers(tmp_path) == []
+    resumed = file_messages(out)
+    assert len(resumed) == len(reference)
+    assert sorted(resumed) == sorted(reference)
+
+
+def test_a_killed_replays_partial_output_is_named_and_removed(minute_log, tmp_path, ros_env):
+    source, reference = minute_log
+    out = tmp_path / 'out.mcap'
+    proc = start_replay(source, out, ros_env)
+    try:
+        wait_until(lambda: partial_size(tmp_path) > 500_000 or proc.poll() is not None, 120,
+                   'the replay to write its first chunks')
+        proc.kill()
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    [partial] = leftovers(tmp_path)
+    size = (tmp_path / partial).stat().st_size
+    # the file a running writer holds is not a leftover
+    running = RecordingWriter(out)
+    assert partial_files(out) == [tmp_path / partial]
+    running.abort()
+    result = replay_cli(source, '--output', out, '--no-progress', *GOLDEN_ARGS, env=ros_env,
+                        timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert (f'cdpr_replay: removed {tmp_path / partial} ({size} bytes), the partial output of '
+            'an interrupted replay') in result.stdout, result.stdout
+    assert sorted(file_messages(out)) == sorted(reference) and leftovers(tmp_path) == []
+    nothing = replay_cli(source, '--output', tmp_path / 'fresh.mcap', '--resume',
+                         '--no-progress', env=ros_env)
+    assert nothing.returncode == 1 and 'nothing to resume' in nothing.stderr
 
 
 # ----------------------------------------------------------------------------- live

@@ -2,21 +2,24 @@
 
     cdpr_replay INPUT --output PATH [--config PATH] [--method M] [--elements N] [--force]
                 [--pose-topic T] [--wrench-topic T] [--order log|stamp] [--allow-incomplete]
-                [--skip-bad] [--no-progress]
+                [--skip-bad] [--resume] [--no-progress]
     cdpr_replay INPUT --live [--rate R] [--subscribers N] [--wait S] [--ros-args ...]
 
 Offline, the inputs go through the same code as ``dynamics_node`` (checks, tension QP, model,
 Newmark) and a new MCAP file gets the inputs plus ``predicted_displacement``,
-``cable_tensions`` and a ``/diagnostics`` message per rejected input; a progress bar runs on
-stderr. The output appears only once complete and an existing one is kept unless ``--force``.
+``cable_tensions`` and a ``/diagnostics`` message per rejected input; on a terminal a progress
+bar with the time left runs on stderr (nothing on a pipe). The output appears only once
+complete and an existing one is kept unless ``--force``.
 Live, the recorded pose and wrench messages are republished on ``pose`` and ``wrench`` with
 the recorded timing (``--rate 2``: twice as fast), once a subscriber (the node) is there.
 
 Errors (a missing, truncated or corrupt file, missing topics, a topic of another type, a
 message that does not decode, a bad config) end with one line and exit status 1;
-``--skip-bad`` replays past undecodable input messages and says how many it skipped. Ctrl-C or
-SIGTERM ends with one line, status 130 and no output file (the output is written under a
-temporary name and renamed only when complete).
+``--skip-bad`` replays past undecodable input messages and says how many it skipped;
+``--allow-incomplete`` replays every intact chunk of a cut or damaged file and names what was
+lost. Ctrl-C or SIGTERM ends with one line and status 130, no output file, and the partial
+output kept under its hidden temporary name (``.NAME.partial-XXXX``): ``--resume`` continues it,
+a run without ``--resume`` names and removes it (as it does the leftover of a killed replay).
 """
 from __future__ import annotations
 
@@ -62,6 +65,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument('--skip-bad', action='store_true',
                         help='offline: skip input messages that do not decode and count them '
                              '(default: stop with an error naming the first)')
+    parser.add_argument('--resume', action='store_true',
+                        help='offline: continue the interrupted or killed replay whose partial '
+                             'output (.PATH.partial-*) is beside PATH')
     parser.add_argument('--rate', type=float, default=1.0, metavar='R',
                         help='live: R times the recorded speed (default 1)')
     parser.add_argument('--subscribers', type=int, default=1, metavar='N',
@@ -103,14 +109,15 @@ class _Bar:
 
 def _offline(args) -> int:
     from cdpr_dynamics.recording.base import RecordingError
-    from cdpr_dynamics.recording.replay import (ReplayError, load_replay_config,
-                                                replay_offline, summary_lines)
+    from cdpr_dynamics.recording.replay import (ReplayError, ReplayInterrupted,
+                                                load_replay_config, replay_offline,
+                                                summary_lines)
 
     def on_term(signum, frame):   # as Ctrl-C: the partial output is removed
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
-    bar = _Bar(not args.no_progress, 'msg', 'replay')
+    bar = _Bar(not args.no_progress and sys.stderr.isatty(), 'msg', 'replay')
     try:
         settings, options, flat = load_replay_config(args.config)
         if args.method:
@@ -121,7 +128,11 @@ def _offline(args) -> int:
             args.input, args.output, settings, args.method, bar,
             elements_per_cable=args.elements, options=options, force=args.force,
             pose_topic=args.pose_topic, wrench_topic=args.wrench_topic, order=args.order,
-            allow_incomplete=args.allow_incomplete, parameters=flat, skip_bad=args.skip_bad)
+            allow_incomplete=args.allow_incomplete, parameters=flat, skip_bad=args.skip_bad,
+            resume=args.resume, keep_partial=True)
+    except ReplayInterrupted as stop:
+        bar.close()
+        return _fail(f'{stop}; no output written', 130)
     except KeyboardInterrupt:
         bar.close()
         return _fail('interrupted; no output written', 130)
@@ -164,7 +175,7 @@ def _live(args, argv) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     node = None
-    bar = _Bar(not args.no_progress, 'msg', 'live')
+    bar = _Bar(not args.no_progress and sys.stderr.isatty(), 'msg', 'live')
     try:
         node = rclpy.create_node('cdpr_replay')
         print(f'{PROG}: waiting for {args.subscribers} subscriber(s) on '
@@ -199,8 +210,9 @@ def main(argv=None) -> int:
     argv = sys.argv if argv is None else [PROG, *argv]
     args = _parser().parse_args(remove_ros_args(argv)[1:])
     if args.live:
-        if args.skip_bad:
-            return _fail('--skip-bad works offline only (with --output)')
+        if args.skip_bad or args.resume:
+            return _fail(f'{"--skip-bad" if args.skip_bad else "--resume"} works offline '
+                         'only (with --output)')
         if args.subscribers < 1:
             return _fail('--subscribers must be at least 1')
         if not (0.0 < args.rate < float('inf')):

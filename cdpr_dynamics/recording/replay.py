@@ -52,7 +52,8 @@ from cdpr_dynamics.analysis.config import (NODE_PARAMETER_BY_NAME, Settings, nod
 from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.recording.base import RecordingError, UndecodableMessage
 from cdpr_dynamics.recording.reader import McapFile, read_messages, recording_info, Salvage
-from cdpr_dynamics.recording.writer import RecordingWriter
+from cdpr_dynamics.recording import chunks
+from cdpr_dynamics.recording.writer import partial_files, RecordingWriter
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import read_displacement
 from msg_adapters.inputs import InputHandler
@@ -69,6 +70,7 @@ DIAGNOSTICS_TOPIC = '/diagnostics'
 NODE_NAME = 'cdpr_dynamics'
 HARDWARE_ID = 'cdpr_replay'
 ORDERS = ('log', 'stamp')
+REPLAY_METADATA = 'cdpr_replay'   # the metadata record naming a replay's input and settings
 
 
 class ReplayError(RuntimeError):
@@ -315,6 +317,9 @@ class ReplaySummary:
     skipped: int = 0            # input messages that did not decode (skip_bad)
     first_skipped: str = ''     # the first one's error
     salvage: Salvage = field(default_factory=Salvage)   # damage met (allow_incomplete)
+    removed_partials: list = field(default_factory=list)  # leftovers of killed replays
+    resumed_from: str = ''      # the partial output continued (resume)
+    resumed_inputs: int = 0     # inputs it held
     messages_written: int = 0
     bytes: int = 0
     elapsed_s: float = 0.0
@@ -350,20 +355,30 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
                    force: bool = False, pose_topic: str | None = None,
                    wrench_topic: str | None = None, order: str = 'log',
                    allow_incomplete: bool = False, parameters: dict | None = None,
-                   skip_bad: bool = False) -> ReplaySummary:
+                   skip_bad: bool = False, resume: bool = False,
+                   keep_partial: bool = False) -> ReplaySummary:
     """Replay the pose and wrench messages of ``input_path`` into a new file ``output_path``.
 
     ``settings`` (e.g. :func:`load_replay_config`), with ``method`` / ``elements_per_cable``
     overriding the configured model; ``options``: the node's input tolerances. ``progress``:
-    called as ``progress(done, total)`` with input messages. ``order``: 'log' (receive time,
-    as the node saw them) or 'stamp' (header stamps). ``parameters``: the flat parameters, kept
-    in the output's ``cdpr_replay`` metadata record. ``skip_bad``: input messages whose bytes
-    do not decode are counted (``skipped``) and left out, instead of ending the replay with an
-    error naming the first. Raises :class:`ReplayError`,
+    called as ``progress(done, total)`` with input messages (once a batch). ``order``: 'log'
+    (receive time, as the node saw them) or 'stamp' (header stamps). ``parameters``: the flat
+    parameters, kept in the output's ``cdpr_replay`` metadata record. ``skip_bad``: input
+    messages whose bytes do not decode are counted (``skipped``) and left out, instead of ending
+    the replay with an error naming the first. ``allow_incomplete``: replay every intact chunk
+    of a cut or damaged file (the damage in ``salvage``).
+
+    The output is written under a hidden temporary name beside ``output_path``
+    (``.NAME.partial-XXXX``) and renamed when complete. Such a file left by a killed or
+    interrupted replay is removed (and named in ``removed_partials``), unless ``resume``: then
+    the replay continues it (its messages are kept, the inputs it holds predicted again without
+    being written) and the output equals an uninterrupted replay's. ``keep_partial``: an
+    interruption (KeyboardInterrupt) finishes the partial file for a later ``resume`` and raises
+    :class:`ReplayInterrupted` naming it. Raises :class:`ReplayError`,
     :class:`~cdpr_dynamics.recording.base.RecordingError` (input or output file) or
     :class:`~cdpr_dynamics.analysis.config.ConfigError` / :class:`AnalysisError` (a model that
-    cannot be
-    built at the initial pose), all one line; nothing is left at ``output_path`` then.
+    cannot be built at the initial pose), all one line; nothing is left at ``output_path``
+    then.
     """
     start = time.perf_counter()
     if order not in ORDERS:
@@ -390,6 +405,25 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
     tensions_topic = f'{_namespace(pose)}/cable_tensions'
     summary = ReplaySummary(input_path, output_path, pose, wrench, order, settings.method,
                             settings.elements_per_cable, predictor.system.dofs)
+    identity = {
+        'input': input_path.name, 'pose_topic': pose, 'wrench_topic': wrench,
+        'order': order, 'method': settings.method,
+        'elements_per_cable': str(settings.elements_per_cable),
+        'node_options': json.dumps(options.__dict__, sort_keys=True),
+        'parameters': json.dumps(parameters or {}, sort_keys=True, default=str),
+        'input_bytes': str(input_path.stat().st_size), 'input_messages': str(total),
+        'skip_bad': str(bool(skip_bad))}
+    partials = partial_files(output_path)
+    source = partials.pop(0) if resume and partials else None
+    if resume and source is None:
+        raise ReplayError(f'nothing to resume: no partial output of an interrupted replay '
+                          f'beside {output_path} (.{output_path.name}.partial-*)')
+    if not force and output_path.exists():
+        raise RecordingError(f'{output_path} exists; not overwriting it (use --force to '
+                             'replace it)')
+    for leftover in partials:
+        summary.removed_partials.append(f'{leftover} ({leftover.stat().st_size} bytes)')
+        leftover.unlink()
 
     with McapFile(input_path) as mcap, RecordingWriter(output_path, force=force) as writer:
         for name in (pose, wrench):
@@ -399,20 +433,25 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
         writer.add_topic(predicted_pose_topic, POSE_TYPE, [_qos(10)])
         writer.add_topic(tensions_topic, TENSIONS_TYPE, [_qos(1, transient_local=True)])
         writer.add_topic(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE, [_qos(10)])
-        writer.add_metadata('cdpr_replay', {
-            'input': input_path.name, 'pose_topic': pose, 'wrench_topic': wrench,
-            'order': order, 'method': settings.method,
-            'elements_per_cable': str(settings.elements_per_cable),
-            'node_options': json.dumps(options.__dict__, sort_keys=True),
-            'parameters': json.dumps(parameters or {}, sort_keys=True, default=str)})
+        writer.add_metadata(REPLAY_METADATA, identity, now=True)
+        mute = 0
+        if source is not None:
+            mute = _copy_partial(source, identity, writer, {pose, wrench})
+            summary.resumed_from, summary.resumed_inputs = str(source), mute
+            source.unlink()
         salvage = summary.salvage if allow_incomplete else None
         if salvage is not None:
             salvage.damage.extend(mcap.layout.damage)
         batches = mcap.batches({pose, wrench}, salvage)
         if order == 'stamp':
             batches = by_stamp(batches, output_path.parent)
-        _replay_batches(batches, mcap, summary, handler, writer, options, total, progress,
-                        skip_bad)
+        try:
+            _replay_batches(batches, mcap, summary, handler, writer, options, total, progress,
+                            skip_bad, mute)
+        except KeyboardInterrupt:
+            if not keep_partial:
+                raise
+            raise ReplayInterrupted(writer.keep_partial(), summary.inputs, total) from None
         written = writer.close()
     summary.dofs = predictor.system.dofs
     summary.messages_written = written.message_count
@@ -421,12 +460,64 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
     return summary
 
 
+class ReplayInterrupted(KeyboardInterrupt):
+    """An interrupted replay whose partial output was kept for ``resume``."""
+
+    def __init__(self, partial: Path, done: int, total: int):
+        super().__init__(f'interrupted after {done} of {total} inputs; the partial output '
+                         f'{partial} is kept: --resume continues it')
+        self.partial, self.done, self.total = partial, done, total
+
+
+def _copy_partial(source: Path, identity: dict, writer: RecordingWriter, inputs: set) -> int:
+    """Copy what a partial output holds up to its last input (whose outputs may be cut off)
+    into ``writer``; the number of inputs copied. Its chunks are read up to the first damaged
+    one; a partial of another replay (other input, settings or order) is refused."""
+    with McapFile(source) as part:
+        made = part.layout.metadata.get(REPLAY_METADATA)
+        if made != identity:
+            raise ReplayError(f'{source} is the partial output of a replay of another input '
+                              'or with other settings: run without --resume to start over')
+        contents = []   # (chunk ref) read once to find the last input, then again to copy
+        last = None
+        for ref in part.layout.chunks:
+            try:
+                content = chunks.read_chunk(part.stream, ref)
+            except chunks.ChunkDamage:
+                break
+            part.channels.update({c.id: c for c in content.channels})
+            contents.append(ref)
+            topics = [part.channels[c].topic if c in part.channels else None
+                      for c in content.channel_ids]
+            for k, topic in enumerate(topics):
+                if topic in inputs:
+                    last = (len(contents) - 1, k)
+        if last is None:
+            return 0
+        copied = 0
+        writers = {}
+        for number, ref in enumerate(contents[:last[0] + 1]):
+            content = chunks.read_chunk(part.stream, ref)
+            end = last[1] if number == last[0] else len(content.data)
+            for k in range(end):
+                channel = part.channels.get(content.channel_ids[k])
+                if channel is None or channel.topic not in writer.topic_counts:
+                    continue
+                write = writers.get(channel.topic)
+                if write is None:
+                    write = writers[channel.topic] = writer.channel_writer(channel.topic)
+                write(content.data[k], content.log_times[k], content.publish_times[k])
+                copied += channel.topic in inputs
+        return copied
+
+
 def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler,
                     writer: RecordingWriter, options: NodeOptions, total: int, progress,
-                    skip_bad: bool) -> None:
+                    skip_bad: bool, mute: int = 0) -> None:
     """The loop of :func:`replay_offline`: each input decoded from its bytes (checked against
     its type: :func:`~msg_adapters.mcap_schema.decode_stamped`), through ``handler``, and the
-    outputs encoded straight to CDR bytes."""
+    outputs encoded straight to CDR bytes; nothing is written for the first ``mute`` inputs
+    (a resumed replay's output has them already)."""
     predictor = handler.predictor
     frame_id = handler.frame_id
     point = options.output_point_m
@@ -457,6 +548,10 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
                     raise UndecodableMessage(bad) from None
                 summary.skipped += 1
                 summary.first_skipped = summary.first_skipped or bad
+                continue
+            if mute:
+                mute -= 1
+                _predict_quietly(handler, is_pose, stamp_ns, frame, values, summary)
                 continue
             write_input(data, log_time, publish_time)
             if is_pose:
@@ -494,6 +589,23 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
         if progress is not None:
             done = summary.inputs + summary.skipped
             progress(done, total)
+
+
+def _predict_quietly(handler: InputHandler, is_pose: bool, stamp_ns: int, frame: str,
+                     values: tuple, summary: ReplaySummary) -> None:
+    """One input through ``handler``, counted, nothing written (a resumed replay's start)."""
+    try:
+        if is_pose:
+            summary.poses += 1
+            update = handler.pose_values(stamp_ns, frame, values)
+            summary.poses_accepted += 1
+            summary.rebuilds += int(update.rebuilt)
+        else:
+            summary.wrenches += 1
+            handler.wrench_values(stamp_ns, frame, values)
+            summary.wrenches_accepted += 1
+    except InvalidMessage as exc:
+        summary.rejected[f'{"pose" if is_pose else "wrench"}:{exc.kind}'] += 1
 
 
 # ----------------------------------------------------------------------------- live
@@ -698,6 +810,13 @@ def compare_outputs(reference: Predictions, candidate: Predictions, rtol: float 
 
 def summary_lines(summary: ReplaySummary) -> Iterable[str]:
     """Human-readable lines about a finished offline replay."""
+    for leftover in summary.removed_partials:
+        yield f'removed {leftover}, the partial output of an interrupted replay'
+    if summary.resumed_from:
+        yield (f'resumed {summary.resumed_from}: kept its output of {summary.resumed_inputs} '
+               'inputs (predicted again, not rewritten)')
+    for line in summary.salvage.lines():
+        yield f'{summary.input_path}: {line}'
     rejected = ', '.join(f'{k} {v}' for k, v in sorted(summary.rejected.items())) or 'none'
     yield (f'{summary.poses} poses ({summary.poses_accepted} accepted, {summary.rebuilds} '
            f'rebuilds), {summary.wrenches} wrenches ({summary.wrenches_accepted} predictions); '
@@ -713,6 +832,7 @@ def summary_lines(summary: ReplaySummary) -> Iterable[str]:
 
 __all__ = [
     'Comparison', 'InputHandler', 'LiveSummary', 'NodeOptions', 'Predictions', 'ReplayError',
+    'ReplayInterrupted',
     'ReplaySummary', 'RecordingError', 'compare_outputs', 'find_input_topics', 'inspect_input',
     'load_replay_config', 'read_predictions', 'rejection_message', 'replay_live',
     'replay_offline', 'resolve_input', 'summary_lines',

@@ -215,12 +215,15 @@ def long_log_messages(duration_s: float, wrench_hz: float = 1000.0, pose_hz: flo
 
 
 def write_long_log(path, duration_s: float, force: bool = False, compression: str = 'none',
-                   **kwargs):
-    """Write :func:`long_log_messages` (``kwargs``: its rates) to ``path``; the
-    :class:`RecordingSummary`. Memory stays flat whatever the duration."""
+                   chunk_size: int | None = None, **kwargs):
+    """Write :func:`long_log_messages` (``kwargs``: its rates) to ``path`` (``chunk_size``:
+    bytes, default the recorder's); the :class:`RecordingSummary`. Memory stays flat whatever
+    the duration."""
+    from cdpr_dynamics.recording.base import DEFAULT_CHUNK_SIZE
     from cdpr_dynamics.recording.writer import RecordingWriter
 
-    with RecordingWriter(path, force=force, compression=compression) as writer:
+    with RecordingWriter(path, force=force, compression=compression,
+                         chunk_size=chunk_size or DEFAULT_CHUNK_SIZE) as writer:
         writer.add_topic('/pose', 'geometry_msgs/msg/PoseStamped', QOS)
         writer.add_topic('/wrench', 'geometry_msgs/msg/WrenchStamped', QOS)
         writer.add_metadata('cdpr_scenario', {'name': 'long_log', 'frame_id': FRAME,

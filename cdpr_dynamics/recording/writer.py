@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import errno
+import fcntl
+import glob
 import itertools
 import os
 import resource
@@ -31,8 +33,10 @@ class RecordingWriter:
     The file is written under a hidden temporary name in the destination folder
     (``.NAME.partial-XXXX``) and renamed to ``path`` only by :meth:`close`, so a file at
     ``path`` is always complete; :meth:`abort` (or an exception in a ``with`` block) deletes
-    the temporary file. An existing ``path`` is refused unless ``force``, at start and again at
-    the rename. Not thread-safe.
+    the temporary file, :meth:`keep_partial` finishes it under its temporary name. The writer
+    holds an exclusive ``flock`` on the temporary file while it writes, so a temporary file
+    nobody holds is the leftover of a killed writer (:func:`partial_files`). An existing
+    ``path`` is refused unless ``force``, at start and again at the rename. Not thread-safe.
     """
 
     def __init__(self, path, *, force: bool = False, chunk_size: int = DEFAULT_CHUNK_SIZE,
@@ -51,6 +55,7 @@ class RecordingWriter:
         fd, self.temp_path = temporary_file(self.path)
         self._stream = None
         try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             self._stream = os.fdopen(fd, 'wb')
             self._writer = mcap_writer(self._stream, chunk_size, compression, library)
         except BaseException as err:   # a write error, or Ctrl-C before any `with` can abort
@@ -142,10 +147,29 @@ class RecordingWriter:
             raise RecordingError(f'topic {topic} was not declared with add_topic')
         return entry['write']
 
-    def add_metadata(self, name: str, values: Mapping[str, str]) -> None:
-        """A metadata record (string keys and values), written when the file is finished."""
+    def add_metadata(self, name: str, values: Mapping[str, str], now: bool = False) -> None:
+        """A metadata record (string keys and values), written when the file is finished, or
+        at once with ``now`` (then a killed writer's partial file holds it too)."""
         self._check_open()
-        self._metadata.append((name, {str(k): str(v) for k, v in values.items()}))
+        values = {str(k): str(v) for k, v in values.items()}
+        if now:
+            self._writer.add_metadata(name, values)
+        else:
+            self._metadata.append((name, values))
+
+    def keep_partial(self) -> Path:
+        """Finish the file (summary, index) but keep it under its temporary name, e.g. for a
+        later run to continue; its path. Afterwards the writer is closed."""
+        self._check_open()
+        try:
+            self._writer.finish()
+            self._stream.close()
+        except OSError as err:
+            self.abort()
+            raise RecordingError(f'cannot write {self.temp_path}: {err.strerror or err}') \
+                from None
+        self._state = 'kept'
+        return self.temp_path
 
     def close(self) -> RecordingSummary:
         """Finish the file (rosbag2 metadata, summary, index), then give it its name."""
@@ -295,6 +319,26 @@ class MessageAppender:
             if buffer.tell() > limit:
                 finalize()
         return write
+
+
+def partial_files(path) -> list:
+    """The temporary files of writers of ``path`` (``.NAME.partial-*`` beside it) that no
+    running writer holds: the leftovers of killed or interrupted ones, newest first."""
+    path = Path(path)
+    found = []
+    for candidate in path.parent.glob(f'.{glob.escape(path.name)}.partial-*'):
+        try:
+            fd = os.open(candidate, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            continue    # a running writer holds it
+        finally:
+            os.close(fd)
+        found.append(candidate)
+    return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
 
 
 def qos_from_yaml(text: str) -> list:
