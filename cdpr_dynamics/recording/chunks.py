@@ -14,19 +14,11 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 
+from mcap import stream_reader as mcap_stream   # its zstandard and lz4 (None if missing)
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Metadata, Schema
-
-try:
-    import zstandard
-except ImportError:    # pragma: no cover - mcap-ros2-support brings it
-    zstandard = None
-try:
-    import lz4.frame as lz4
-except ImportError:    # pragma: no cover
-    lz4 = None
 
 MAGIC = b'\x89MCAP0\r\n'
 OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
@@ -195,8 +187,9 @@ def _scan(stream, size: int, damage: list) -> Layout:
             restart = position + 1 if previous_checked or previous is None else previous + 1
             found = _find_chunk(stream, restart, size)
             stop = found if found is not None else size
-            damage.append(f'bytes {restart}-{stop} unreadable (no record there)'
-                          + ('' if found is not None else '; nothing readable after them'))
+            damage.append(f'bytes {restart}-{stop} unreadable (a damaged record; what it held '
+                          'is lost)' + ('' if found is not None else ', nothing readable after '
+                                        'them'))
             if found is None:
                 break
             position, previous, previous_checked = found, None, True
@@ -246,7 +239,8 @@ def layout(stream) -> Layout:
     if found is not None:
         return found
     if not damage and _read_at(stream, size - len(MAGIC), 8) == MAGIC:
-        damage.append('summary or chunk index damaged; chunks found by a scan')
+        damage.append('the chunk index does not match the chunks (a chunk header or the index '
+                      'is damaged); chunks found by a scan')
     return _scan(stream, size, damage)
 
 
@@ -254,12 +248,12 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
     if compression == '':
         return data
     if compression == 'zstd':
-        if zstandard is None:
+        if mcap_stream.zstandard is None:
             raise ChunkDamage('zstd compression, but zstandard is not installed')
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    if lz4 is None:
+        return mcap_stream.zstandard.decompress(data, size)
+    if mcap_stream.lz4 is None:
         raise ChunkDamage('lz4 compression, but lz4 is not installed')
-    return lz4.decompress(data)
+    return mcap_stream.lz4.decompress(data)
 
 
 def read_chunk(stream, ref: ChunkRef) -> ChunkContent:
