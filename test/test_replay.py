@@ -641,6 +641,122 @@ def test_a_killed_replays_partial_output_is_named_and_removed(minute_log, tmp_pa
     assert nothing.returncode == 1 and 'nothing to resume' in nothing.stderr
 
 
+# ----------------------------------------------------------------------------- long logs
+
+BOUNDED = """
+import os, resource, sys
+from cdpr_dynamics.recording.replay import load_replay_config, replay_offline
+source, output, config, order, incomplete, headroom = sys.argv[1:7]
+settings, options, _ = load_replay_config(config)
+with open('/proc/self/status') as status:
+    size = next(int(line.split()[1]) * 1024 for line in status if line.startswith('VmSize:'))
+limit = size + int(headroom)
+resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+if order == 'hold':      # the control: what holding the input in memory needs
+    with open(source, 'rb') as stream:
+        data = stream.read()
+    sys.exit(0)
+summary = replay_offline(source, output, settings, 'spring', options=options, order=order,
+                         allow_incomplete=incomplete == '1')
+print(summary.poses_accepted, summary.wrenches_accepted, summary.salvage.lines())
+"""
+HEADROOM = 64 * 2**20
+
+
+@pytest.mark.parametrize('order, incomplete', [('log', False), ('stamp', False),
+                                               ('log', True)],
+                         ids=['log', 'stamp', 'allow-incomplete'])
+def test_a_log_larger_than_the_memory_allowed_replays(order, incomplete, tmp_path,
+                                                      big_log, ros_env):
+    """A child limits its address space to what it has after its imports plus 64 MiB, and
+    replays a 200 MB log in each mode: every input predicted. Holding the log's bytes alone
+    fails under the same limit."""
+    source, config, poses, wrenches = big_log
+    if incomplete:   # a recorder killed at 90 %: no summary, the last chunk cut
+        cut = tmp_path / 'cut.mcap'
+        with open(source, 'rb') as full, open(cut, 'wb') as out:
+            out.write(full.read(int(source.stat().st_size * 0.9)))
+        expected = None
+        source = cut
+    else:
+        expected = f'{poses} {wrenches} []'
+
+    def child(mode: str, output: Path) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [PYTHON, '-c', BOUNDED, str(source), str(output), str(config), mode,
+             '1' if incomplete else '0', str(HEADROOM)],
+            env={**ros_env, 'OPENBLAS_NUM_THREADS': '1', 'MALLOC_ARENA_MAX': '1'},
+            capture_output=True, text=True, timeout=600)
+
+    assert source.stat().st_size > 3 * HEADROOM
+    control = child('hold', tmp_path / 'none.mcap')
+    assert control.returncode != 0 and 'MemoryError' in control.stderr, control
+    result = child(order, tmp_path / 'out.mcap')
+    assert result.returncode == 0, result.stderr[-2000:]
+    if expected is not None:
+        assert result.stdout.strip() == expected
+    else:
+        accepted = [int(v) for v in result.stdout.split()[:2]]
+        info = recording_info(source)
+        assert accepted == [info.topics['/pose'].message_count,
+                            info.topics['/wrench'].message_count]
+        assert 0.8 * wrenches < accepted[1] < wrenches
+    out = recording_info(tmp_path / 'out.mcap')
+    assert out.topics['/predicted_displacement'].message_count == \
+        out.topics['/wrench'].message_count
+
+
+@pytest.fixture(scope='module')
+def big_log(tmp_path_factory):
+    """A 200 MB log (120 s of 1 kHz wrenches and 50 Hz poses, every message carrying a
+    1500-character frame id), the config naming that frame, its pose and wrench counts."""
+    folder = tmp_path_factory.mktemp('big')
+    frame = 'cdpr_frame_' + 'x' * 1489
+    params = yaml.safe_load(CONFIG.read_text())
+    params['/**']['ros__parameters']['robot']['frame_id'] = frame
+    config = folder / 'long_frame.yaml'
+    config.write_text(yaml.safe_dump(params))
+    source = folder / 'big.mcap'
+    written = scenarios.write_long_log(source, 120.0, frame_id=frame)
+    return source, config, written.topics['/pose'], written.topics['/wrench']
+
+
+# ----------------------------------------------------------------------------- garbage
+
+
+def test_bytes_of_another_type_are_refused_or_skipped(tmp_path, ros_env):
+    """A wrench channel carrying PoseStamped bytes: refused with one line naming the message,
+    or every one skipped and counted with --skip-bad; none is predicted."""
+    source = tmp_path / 'poses_as_wrenches.mcap'
+    with RecordingWriter(source) as writer:
+        writer.add_topic('/pose', POSE)
+        writer.add_topic('/wrench', WRENCH)
+        for k in range(2000):
+            t = scenarios.T0_NS + k * 10**6
+            if k % 20 == 0:
+                writer.write('/pose', pose_message((0.05, 0.0, 1.25), stamp=stamp_msg(t),
+                                                   frame_id='world'), t)
+            writer.write('/wrench', pose_message((1.0, 2.0, 3.0), stamp=stamp_msg(t + 1),
+                                                 frame_id='world'), t + 1)
+    out = tmp_path / 'out.mcap'
+    result = replay_cli(source, '--output', out, '--no-progress', env=ros_env)
+    err = result.stderr.strip()
+    assert result.returncode == 1 and err.count('\n') == 0 and 'Traceback' not in err, err
+    assert (f'cannot decode message 1 (a {WRENCH} on /wrench at log time '
+            f'{scenarios.T0_NS + 1}): 80 bytes of data, a {WRENCH} with this frame_id ends '
+            'after 72 (the bytes are of another type)') in err, err
+    assert not out.exists()
+    result = replay_cli(source, '--output', out, '--no-progress', '--skip-bad', env=ros_env)
+    assert result.returncode == 0, result.stderr
+    assert 'skipped 2000 undecodable input message(s)' in result.stdout
+    assert '0 wrenches (0 predictions)' in result.stdout
+    info = recording_info(out)
+    assert info.topics['/wrench'].message_count == 0
+    assert info.topics['/predicted_displacement'].message_count == 0
+    with pytest.raises(RecordingError, match='the bytes are of another type'):
+        list(read_messages(source, ['wrench']))
+
+
 # ----------------------------------------------------------------------------- live
 
 

@@ -92,18 +92,20 @@ def _drain(recorder, budget_s: float = 0.5) -> None:
 
 
 def _recover(source: str, destination: str) -> int:
-    """``--recover IN OUT``: one line with the counts, or one line with the error."""
+    """``--recover IN OUT``: one line with the counts (and a line per kind of damage met), or
+    one line with the error."""
     from cdpr_dynamics.recording.base import RecordingError
-    from cdpr_dynamics.recording.reader import recording_info
+    from cdpr_dynamics.recording.reader import recording_info, Salvage
     from cdpr_dynamics.recording.recovery import recover_recording
 
     def on_term(signum, frame):   # as Ctrl-C: the partial output is removed
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
+    salvage = Salvage()
     try:
         before = recording_info(source)
-        kept = recover_recording(source, destination)
+        kept = recover_recording(source, destination, salvage=salvage)
         after = recording_info(destination)
     except RecordingError as err:
         return _fail(str(err))
@@ -112,10 +114,13 @@ def _recover(source: str, destination: str) -> int:
     except OSError as err:
         return _fail(f'{getattr(err, "filename", "") or ""} {err.strerror or err}'.strip())
     topics = ', '.join(f'{name} {t.message_count}' for name, t in sorted(after.topics.items()))
-    state = 'was complete' if before.complete else 'was cut short'
-    print(f'cdpr_record: recovered {kept} messages from {before.chunk_count} whole chunks of '
+    state = ('was complete' if before.complete and not salvage else
+             'was damaged' if salvage.lost_chunks or before.complete else 'was cut short')
+    print(f'cdpr_record: recovered {kept} messages from {salvage.chunks_read} whole chunks of '
           f'{before.path} ({state}) into {after.path.resolve()}: {topics or "no topics"}',
           flush=True)
+    for line in salvage.lines():
+        print(f'cdpr_record: {before.path}: {line}', flush=True)
     return 0
 
 

@@ -62,6 +62,7 @@ class Layout:
     metadata: dict = field(default_factory=dict)
     statistics: object = None
     damage: list = field(default_factory=list)
+    cut_at: int | None = None        # offset of the record a cut file ends inside
 
 
 @dataclass
@@ -186,6 +187,9 @@ def _scan(stream, size: int, damage: list) -> Layout:
                 break
             restart = position + 1 if previous_checked or previous is None else previous + 1
             found = _find_chunk(stream, restart, size)
+            if found is None and opcode in _OPCODES and end > size:
+                out.cut_at = position    # a file cut short (a killed writer): not damage
+                break
             stop = found if found is not None else size
             damage.append(f'bytes {restart}-{stop} unreadable (a damaged record; what it held '
                           'is lost)' + ('' if found is not None else ', nothing readable after '

@@ -61,6 +61,7 @@ class Salvage:
     damage: list = field(default_factory=list)
     lost_chunks: list = field(default_factory=list)
     orphans: int = 0
+    chunks_read: int = 0
 
     def __bool__(self) -> bool:
         return bool(self.damage or self.lost_chunks or self.orphans)
@@ -135,6 +136,8 @@ class McapFile:
                                          'intact chunks)') from None
                 salvage.lost_chunks.append(str(err))
                 continue
+            if salvage is not None:
+                salvage.chunks_read += 1
             for schema in content.schemas:
                 self.schemas.setdefault(schema.id, schema)
             for channel in content.channels:

@@ -205,9 +205,10 @@ def _input_stream(path, pose, wrench, allow_incomplete: bool):
 
 # ----------------------------------------------------------------------------- stamp order
 
-#: messages sorted in memory at once by ``--order stamp``; a longer input is sorted in runs of
-#: this many, kept in temporary files beside the output and merged
+#: messages (and bytes of them) sorted in memory at once by ``--order stamp``; a longer input
+#: is sorted in runs of this size, kept in temporary files beside the output and merged
 RUN_MESSAGES = 100_000
+RUN_BYTES = 16 * 1024 * 1024
 _RUN_BUFFER = 256 * 1024
 _RUN_HEAD = struct.Struct('<qQQHI')     # stamp key, log time, publish time, channel, length
 _STAMP = {b'\x00\x01': struct.Struct('<iI'), b'\x00\x00': struct.Struct('>iI')}
@@ -254,15 +255,16 @@ def _read_run(stream):
 def by_stamp(batches, folder: Path, batch_size: int = 4096):
     """The messages of ``batches`` ((log time, publish time, channel, bytes) lists) in batches
     sorted by header stamp, then log time, then input order: an external merge sort whose
-    memory is :data:`RUN_MESSAGES` messages whatever the input's length."""
-    run, runs = [], []
+    memory is a run (:data:`RUN_MESSAGES`, :data:`RUN_BYTES`) whatever the input's length."""
+    run, runs, size = [], [], 0
     try:
         for batch in batches:
             run.extend((stamp_key(item[3]), *item) for item in batch)
-            if len(run) >= RUN_MESSAGES:
+            size += sum(len(item[3]) for item in batch)
+            if len(run) >= RUN_MESSAGES or size >= RUN_BYTES:
                 run.sort(key=_stamp_order)
                 runs.append(_spill(run, folder))
-                run = []
+                run, size = [], 0
         run.sort(key=_stamp_order)
         if runs:
             runs.append(_spill(run, folder))

@@ -184,12 +184,12 @@ def write_scenario(name: str, path, force: bool = False, **kwargs):
 
 
 def long_log_messages(duration_s: float, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
-                      hold_s: float = 10.0):
+                      hold_s: float = 10.0, frame_id: str = FRAME):
     """(topic, log time ns, CDR bytes) of a long recording, in log-time order, generated
     lazily: ``wrench_hz`` wrenches (a 3 Hz / 5 Hz harmonic load, as ``trajectory_harmonic``)
     and ``pose_hz`` poses of a robot that holds a station for ``hold_s`` seconds, with
     measurement noise below the node's pose tolerance, then moves to the next station of a
-    slow circle (one rebuild per station)."""
+    slow circle (one rebuild per station); all in ``frame_id``."""
     wrench_period = round(1e9 / wrench_hz)
     pose_period = round(1e9 / pose_hz)
     n_wrench = int(round(duration_s * 1e9 / wrench_period))
@@ -204,14 +204,14 @@ def long_log_messages(duration_s: float, wrench_hz: float = 1000.0, pose_hz: flo
             noise = 2e-5 * math.sin(1.7 * pose_k)          # 20 um: below node.pose_tolerance_m
             values = (0.15 * math.cos(angle) + noise, 0.08 * math.sin(angle), 1.25,
                       *_yaw(0.02 * math.sin(angle)))
-            yield '/pose', T0_NS + pt, encode_stamped(T0_NS + pt, FRAME, values)
+            yield '/pose', T0_NS + pt, encode_stamped(T0_NS + pt, frame_id, values)
             pose_k += 1
         if k == n_wrench:
             break
         t = t_ns * 1e-9
         values = (30.0 * math.sin(2 * math.pi * 3.0 * t), 0.0,
                   200.0 * math.sin(2 * math.pi * 5.0 * t), 0.0, 0.0, 0.0)
-        yield '/wrench', T0_NS + t_ns, encode_stamped(T0_NS + t_ns, FRAME, values)
+        yield '/wrench', T0_NS + t_ns, encode_stamped(T0_NS + t_ns, frame_id, values)
 
 
 def write_long_log(path, duration_s: float, force: bool = False, compression: str = 'none',
@@ -226,7 +226,8 @@ def write_long_log(path, duration_s: float, force: bool = False, compression: st
                          chunk_size=chunk_size or DEFAULT_CHUNK_SIZE) as writer:
         writer.add_topic('/pose', 'geometry_msgs/msg/PoseStamped', QOS)
         writer.add_topic('/wrench', 'geometry_msgs/msg/WrenchStamped', QOS)
-        writer.add_metadata('cdpr_scenario', {'name': 'long_log', 'frame_id': FRAME,
+        writer.add_metadata('cdpr_scenario', {'name': 'long_log',
+                                              'frame_id': kwargs.get('frame_id', FRAME),
                                               't0_ns': str(T0_NS)})
         for topic, log_time, data in long_log_messages(duration_s, **kwargs):
             writer.write(topic, data, log_time)
