@@ -913,7 +913,7 @@ def damage_at(data: bytes, offset: int) -> bytes:
 
 
 @pytest.mark.parametrize('where', ['chunk payload', 'chunk length', 'chunk records length',
-                                   'chunk index', 'footer'])
+                                   'summary', 'footer'])
 def test_damage_costs_the_damaged_chunk_only(where, chunked_log, tmp_path, ros_env):
     """One flipped byte: --allow-incomplete reads and --recover keeps every message outside
     the damaged chunk (none lost where the damage is in the summary or footer), counted
@@ -926,9 +926,9 @@ def test_damage_costs_the_damaged_chunk_only(where, chunked_log, tmp_path, ros_e
     at = {'chunk payload': offset + length - 100,
           'chunk length': offset + 3,
           'chunk records length': offset + 9 + 28 + 4 + compression_length + 1,
-          'chunk index': len(data) - 8 - 29 - 400,
+          'summary': len(data) - 8 - 29 - 400,
           'footer': len(data) - 8 - 12}[where]
-    lost = census[k][2] if where.startswith('chunk ') else 0
+    lost = 0 if where in ('summary', 'footer') else census[k][2]
     total = sum(n for _, _, n in census)
     path = tmp_path / 'damaged.mcap'
     path.write_bytes(damage_at(data, at))

@@ -646,8 +646,11 @@ def test_a_killed_replays_partial_output_is_named_and_removed(minute_log, tmp_pa
 BOUNDED = """
 import os, resource, sys
 from cdpr_dynamics.recording.replay import load_replay_config, replay_offline
-source, output, config, order, incomplete, headroom = sys.argv[1:7]
+source, warm_up, output, config, order, incomplete, headroom = sys.argv[1:8]
 settings, options, _ = load_replay_config(config)
+# a short replay first: imports, BLAS buffers and the model's arrays are there before the limit
+replay_offline(warm_up, output, settings, 'spring', options=options, force=True,
+               order='log' if order == 'hold' else order)
 with open('/proc/self/status') as status:
     size = next(int(line.split()[1]) * 1024 for line in status if line.startswith('VmSize:'))
 limit = size + int(headroom)
@@ -657,7 +660,7 @@ if order == 'hold':      # the control: what holding the input in memory needs
         data = stream.read()
     sys.exit(0)
 summary = replay_offline(source, output, settings, 'spring', options=options, order=order,
-                         allow_incomplete=incomplete == '1')
+                         allow_incomplete=incomplete == '1', force=True)
 print(summary.poses_accepted, summary.wrenches_accepted, summary.salvage.lines())
 """
 HEADROOM = 64 * 2**20
@@ -668,10 +671,10 @@ HEADROOM = 64 * 2**20
                          ids=['log', 'stamp', 'allow-incomplete'])
 def test_a_log_larger_than_the_memory_allowed_replays(order, incomplete, tmp_path,
                                                       big_log, ros_env):
-    """A child limits its address space to what it has after its imports plus 64 MiB, and
-    replays a 200 MB log in each mode: every input predicted. Holding the log's bytes alone
-    fails under the same limit."""
-    source, config, poses, wrenches = big_log
+    """A child limits its address space to what it has after a short replay plus 64 MiB, and
+    replays a 230 MB log (207 MB cut) in each mode: every input predicted. Holding the log's
+    bytes alone fails under the same limit."""
+    source, warm_up, config, poses, wrenches = big_log
     if incomplete:   # a recorder killed at 90 %: no summary, the last chunk cut
         cut = tmp_path / 'cut.mcap'
         with open(source, 'rb') as full, open(cut, 'wb') as out:
@@ -683,13 +686,13 @@ def test_a_log_larger_than_the_memory_allowed_replays(order, incomplete, tmp_pat
 
     def child(mode: str, output: Path) -> subprocess.CompletedProcess:
         return subprocess.run(
-            [PYTHON, '-c', BOUNDED, str(source), str(output), str(config), mode,
+            [PYTHON, '-c', BOUNDED, str(source), str(warm_up), str(output), str(config), mode,
              '1' if incomplete else '0', str(HEADROOM)],
             env={**ros_env, 'OPENBLAS_NUM_THREADS': '1', 'MALLOC_ARENA_MAX': '1'},
             capture_output=True, text=True, timeout=600)
 
     assert source.stat().st_size > 3 * HEADROOM
-    control = child('hold', tmp_path / 'none.mcap')
+    control = child('hold', tmp_path / 'out.mcap')
     assert control.returncode != 0 and 'MemoryError' in control.stderr, control
     result = child(order, tmp_path / 'out.mcap')
     assert result.returncode == 0, result.stderr[-2000:]
@@ -708,8 +711,9 @@ def test_a_log_larger_than_the_memory_allowed_replays(order, incomplete, tmp_pat
 
 @pytest.fixture(scope='module')
 def big_log(tmp_path_factory):
-    """A 200 MB log (120 s of 1 kHz wrenches and 50 Hz poses, every message carrying a
-    1500-character frame id), the config naming that frame, its pose and wrench counts."""
+    """A 230 MB log (135 s of 1 kHz wrenches and 50 Hz poses, every message carrying a
+    1500-character frame id), 1 s of the same for a warm-up, the config naming that frame, its
+    pose and wrench counts."""
     folder = tmp_path_factory.mktemp('big')
     frame = 'cdpr_frame_' + 'x' * 1489
     params = yaml.safe_load(CONFIG.read_text())
@@ -717,8 +721,10 @@ def big_log(tmp_path_factory):
     config = folder / 'long_frame.yaml'
     config.write_text(yaml.safe_dump(params))
     source = folder / 'big.mcap'
-    written = scenarios.write_long_log(source, 120.0, frame_id=frame)
-    return source, config, written.topics['/pose'], written.topics['/wrench']
+    written = scenarios.write_long_log(source, 135.0, frame_id=frame)
+    warm_up = folder / 'warm_up.mcap'
+    scenarios.write_long_log(warm_up, 1.0, frame_id=frame)
+    return source, warm_up, config, written.topics['/pose'], written.topics['/wrench']
 
 
 # ----------------------------------------------------------------------------- garbage
