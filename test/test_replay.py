@@ -572,17 +572,12 @@ def partial_size(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.iterdir() if '.partial-' in p.name)
 
 
-@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM, signal.SIGKILL],
-                         ids=['SIGINT', 'SIGTERM', 'SIGKILL'])
-def test_interrupted_replay_resumes_to_the_uninterrupted_output(sig, minute_log, tmp_path,
-                                                                ros_env):
-    """A signal mid-replay leaves no output but its partial file; --resume continues it to
-    the output an uninterrupted replay writes, message for message."""
-    source, reference = minute_log
-    out = tmp_path / 'never.mcap'
-    proc = start_replay(source, out, ros_env)
+def signal_mid_replay(source: Path, out: Path, env: dict, sig, written: int) -> tuple:
+    """A CLI replay of ``source`` sent ``sig`` once its partial output holds ``written``
+    bytes: (process, stdout, stderr) once it has ended."""
+    proc = start_replay(source, out, env)
     try:
-        wait_until(lambda: partial_size(tmp_path) > 1_500_000 or proc.poll() is not None, 120,
+        wait_until(lambda: partial_size(out.parent) > written or proc.poll() is not None, 120,
                    'the replay to write its first chunks')
         assert proc.poll() is None, 'the replay ended before the signal'
         proc.send_signal(sig)
@@ -591,6 +586,18 @@ def test_interrupted_replay_resumes_to_the_uninterrupted_output(sig, minute_log,
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    return proc, stdout, stderr
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM, signal.SIGKILL],
+                         ids=['SIGINT', 'SIGTERM', 'SIGKILL'])
+def test_interrupted_replay_resumes_to_the_uninterrupted_output(sig, minute_log, tmp_path,
+                                                                ros_env):
+    """A signal mid-replay leaves no output but its partial file; --resume continues it to
+    the output an uninterrupted replay writes, message for message."""
+    source, reference = minute_log
+    out = tmp_path / 'never.mcap'
+    proc, stdout, stderr = signal_mid_replay(source, out, ros_env, sig, 1_500_000)
     [partial] = leftovers(tmp_path)
     assert not out.exists()
     if sig == signal.SIGKILL:
@@ -614,16 +621,7 @@ def test_interrupted_replay_resumes_to_the_uninterrupted_output(sig, minute_log,
 def test_a_killed_replays_partial_output_is_named_and_removed(minute_log, tmp_path, ros_env):
     source, reference = minute_log
     out = tmp_path / 'out.mcap'
-    proc = start_replay(source, out, ros_env)
-    try:
-        wait_until(lambda: partial_size(tmp_path) > 500_000 or proc.poll() is not None, 120,
-                   'the replay to write its first chunks')
-        proc.kill()
-        proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    signal_mid_replay(source, out, ros_env, signal.SIGKILL, 500_000)
     [partial] = leftovers(tmp_path)
     size = (tmp_path / partial).stat().st_size
     # the file a running writer holds is not a leftover

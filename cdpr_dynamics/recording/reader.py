@@ -23,8 +23,6 @@ from cdpr_dynamics.recording.base import (
     RecordingError, RecordingInfo, TopicInfo, UndecodableMessage)
 from msg_adapters import mcap_schema
 
-MAGIC = b'\x89MCAP0\r\n'
-
 
 def open_mcap(path) -> tuple[Path, io.BufferedReader]:
     path = Path(path)
@@ -37,8 +35,8 @@ def open_mcap(path) -> tuple[Path, io.BufferedReader]:
             f'{path} is a directory; give the .mcap file inside it') from None
     except OSError as err:
         raise RecordingError(f'{path}: cannot read ({err.strerror or err})') from None
-    head = stream.read(len(MAGIC))
-    if head != MAGIC:
+    head = stream.read(len(chunks.MAGIC))
+    if head != chunks.MAGIC:
         stream.close()
         what = 'empty' if not head else 'not an MCAP file (bad magic bytes)'
         raise RecordingError(f'{path}: {what}')
