@@ -606,6 +606,7 @@ def _predict_quietly(handler: InputHandler, is_pose: bool, stamp_ns: int, frame:
             summary.wrenches += 1
             handler.wrench_values(stamp_ns, frame, values)
             summary.wrenches_accepted += 1
+            summary.before_first_pose += not summary.poses_accepted
     except InvalidMessage as exc:
         summary.rejected[f'{"pose" if is_pose else "wrench"}:{exc.kind}'] += 1
 
