@@ -134,7 +134,8 @@ def test_shaper_command_prints_what_the_node_publishes(tmp_path):
     from cdpr_dynamics.analysis.controller import controller_shaping, length_offsets
     from cdpr_dynamics.analysis.pipeline import (build_system, damping_for, equilibrium,
                                                  system_modes)
-    config = write_config(tmp_path, **{'damping.modal_ratio': 0.02})
+    config = write_config(tmp_path, **{'damping.modal_ratio': 0.02, 'damping.mass_factor': 0.0,
+                                       'damping.stiffness_factor': 0.0})
     out = analyze('--config', config, '--method', 'spring', '--shaper', 'ei', '--shaper-modes',
                   '2', '--notch-sample-rate', '500', '--position', '0.3', '-0.2', '1.1',
                   '--duration', '0.01', '--json', tmp_path / 'a.json')

@@ -22,7 +22,8 @@ DT = 1e-4
 @pytest.fixture(scope='module')
 def robot():
     """The paper robot (spring), 2 % modal damping, its modes with shapes."""
-    settings = load_settings().replace(method='spring', damping_modal_ratio=0.02)
+    settings = load_settings().replace(method='spring', damping_modal_ratio=0.02,
+                                       damping_mass_factor=0.0, damping_stiffness_factor=0.0)
     eq = equilibrium(settings)
     system = build_system(settings, eq)
     damping = damping_for(settings, system)
