@@ -547,7 +547,7 @@ def entered(stderr_lines: list) -> bool:
 
 @pytest.mark.parametrize('tool,args', [
     ('cdpr_analyze', ['--method', 'fem', '--elements', '48', '--duration', '60']),
-    ('cdpr_tradeoff', ['--csv', 'out.csv']),
+    ('cdpr_tradeoff', ['--csv', 'out.csv', '--plot', 'out.png']),
 ])
 @pytest.mark.parametrize('delay_s', [0.0, 0.1, 0.4, 1.0])
 def test_ctrl_c_during_the_imports_ends_a_tool_with_one_line(ros_env, tmp_path, tool, args,
