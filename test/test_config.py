@@ -379,7 +379,7 @@ def test_hostile_file_in_the_other_tools(tmp_path, tool):
 # ----------------------------------------------------- the node and cdpr_analyze, same line
 
 
-CONFIG_MISTAKES = {   # issue 9 finding 3: name -> (file text, -p rules, message)
+CONFIG_MISTAKES = {   # name -> (file text, -p rules, message)
     'mass_kgg': (lambda t: t.replace('mass_kg:', 'mass_kgg:'), [],
                  'unknown parameter robot.mass_kgg (did you mean robot.mass_kg?)'),
     'missing_mass': (lambda t: t.replace('      mass_kg: 30.0\n', ''), [],

@@ -651,7 +651,7 @@ def _per_cable(v: dict, name: str, n: int, per: int = 1) -> np.ndarray:
 
 
 def _real_robot(v: dict, n: int) -> dict:
-    """The optional real-robot description (SPEC section 3) as :class:`Robot` arguments."""
+    """The optional real-robot description as :class:`Robot` arguments."""
     axes = _per_cable(v, 'robot.pulley_axes', n, 3)
     radii = _per_cable(v, 'robot.pulley_radii_m', n)
     winch = _per_cable(v, 'cable.winch_side_lengths_m', n)

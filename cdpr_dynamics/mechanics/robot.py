@@ -295,7 +295,7 @@ class Geometry:
 
 
 def pulley_exits(anchors_m, axes, radii_m, attachments_m, axes_cross=None):
-    """Exit points of swivelling pulleys (SPEC section 3), stacked over cables.
+    """Exit points of swivelling pulleys, stacked over cables.
 
     The pulley plane holds the swivel axis k and the attachment A; its centre is
     C = D + r e (e the unit normal from the axis towards A); the cable runs along k into the
