@@ -21,7 +21,7 @@ DT = 1e-4
 
 @pytest.fixture(scope='module')
 def robot():
-    """The paper robot (spring), 2 % modal damping, its modes with shapes."""
+    """The paper's robot with the spring model, 2 % modal damping, its modes with shapes."""
     settings = load_settings().replace(method='spring', damping_modal_ratio=0.02,
                                        damping_mass_factor=0.0, damping_stiffness_factor=0.0)
     eq = equilibrium(settings)

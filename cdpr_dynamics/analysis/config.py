@@ -257,9 +257,9 @@ def default_config_path() -> Path:
     here = Path(__file__).resolve()
     # installed as <prefix>/lib/pythonX.Y/site-packages/cdpr_dynamics/analysis/config.py (a colcon
     # workspace, /opt/ros, a venv): <prefix>/share, found without the ament index as well
-    if here.parent.parent.name == 'site-packages' and len(here.parents) > 4:
-        candidates.append(here.parents[4] / 'share' / 'cdpr_dynamics' / 'config')
-    candidates.append(here.parent.parent / 'config')     # the source tree
+    if here.parents[2].name == 'site-packages' and len(here.parents) > 5:
+        candidates.append(here.parents[5] / 'share' / 'cdpr_dynamics' / 'config')
+    candidates.append(here.parents[2] / 'config')     # the source tree
     for folder in candidates:
         if (folder / 'paper_cdpr.yaml').is_file():
             return folder / 'paper_cdpr.yaml'
