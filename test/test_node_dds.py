@@ -992,11 +992,14 @@ def test_controller_topics_and_slack(ros):
     from cdpr_dynamics.ros.worker import modes_job
     from msg_adapters.arrays import read_shaper, read_table
 
-    overrides = {'model.method': 'spring', 'damping.modal_ratio': 0.02, 'node.shaper': 'zvd',
-                 'node.shaper_modes': 2}
+    overrides = {'model.method': 'spring', 'damping.modal_ratio': 0.02,
+                 'damping.mass_factor': 0.0, 'damping.stiffness_factor': 0.0,
+                 'node.shaper': 'zvd', 'node.shaper_modes': 2}
     node = Harness(PAPER, ros['log_dir'], 'controller', overrides)
     try:
-        node.settings = node.settings.replace(method='spring', damping_modal_ratio=0.02)
+        node.settings = node.settings.replace(method='spring', damping_modal_ratio=0.02,
+                                              damping_mass_factor=0.0,
+                                              damping_stiffness_factor=0.0)
         node.mirror = LivePredictor(node.settings)
         got = {}
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
