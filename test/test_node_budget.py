@@ -1,6 +1,5 @@
 """What the node can sustain (cdpr_dynamics.ros.budget): the measured cost of a wrench, the
 wrench period, the refusal text; and one name, one node."""
-import signal
 import subprocess
 import time
 
@@ -10,7 +9,7 @@ import pytest
 from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.ros import budget
-from conftest import PAPER_CONFIG, installed, wait_until
+from conftest import PAPER_CONFIG, installed
 
 
 def test_the_period_is_the_median_interval_of_recent_wrenches_or_the_nominal_one():
@@ -51,29 +50,3 @@ def _start(ros_env, tmp_path, tag, *rules):
     proc = subprocess.Popen(command, env=ros_env, stdout=log, stderr=subprocess.STDOUT,
                             start_new_session=True)
     return proc, tmp_path / f'{tag}.log'
-
-
-@pytest.mark.ros
-def test_a_second_node_of_the_same_name_warns_or_refuses(ros_env, tmp_path):
-    first, first_log = _start(ros_env, tmp_path, 'first')
-    procs = [first]
-    try:
-        wait_until(lambda: 'waiting for pose' in first_log.read_text() or first.poll(), 90,
-                   'the first node')
-        refusing, _ = _start(ros_env, tmp_path, 'refusing', 'node.unique_name:=refuse')
-        procs.append(refusing)
-        assert refusing.wait(90) == 1
-        warning, warning_log = _start(ros_env, tmp_path, 'warning')
-        procs.append(warning)
-        wait_until(lambda: 'another node named' in warning_log.read_text()
-                   or warning.poll() is not None, 90, 'the second node to warn')
-        assert warning.poll() is None
-        text = (tmp_path / 'refusing.log').read_text()
-        assert 'dynamics_node: error: another node named /cdpr_dynamics is running' in text
-        assert 'Traceback' not in text
-        assert 'another node named' not in first_log.read_text()   # the first one runs on
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                proc.wait(30)
