@@ -1,6 +1,5 @@
 """What the node can sustain (cdpr_dynamics.ros.budget): the measured cost of a wrench, the
 wrench period, the refusal text; and one name, one node."""
-import subprocess
 import time
 
 import numpy as np
@@ -9,7 +8,7 @@ import pytest
 from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.ros import budget
-from conftest import PAPER_CONFIG, installed
+from conftest import PAPER_CONFIG
 
 
 def test_the_period_is_the_median_interval_of_recent_wrenches_or_the_nominal_one():
@@ -41,12 +40,3 @@ def test_measuring_the_cost_leaves_the_predictor_as_it_was():
     np.testing.assert_array_equal(predictor.integrator._state, state)
     np.testing.assert_array_equal(predictor.prediction().displacement_m, before)
     predictor.advance(6_000_000, [0.0, 0.0, 30.0])      # its clock was not moved either
-
-
-def _start(ros_env, tmp_path, tag, *rules):
-    log = open(tmp_path / f'{tag}.log', 'w+')
-    command = [installed('dynamics_node'), '--ros-args', '--params-file', str(PAPER_CONFIG),
-               '-p', 'model.method:=spring', *[a for r in rules for a in ('-p', r)]]
-    proc = subprocess.Popen(command, env=ros_env, stdout=log, stderr=subprocess.STDOUT,
-                            start_new_session=True)
-    return proc, tmp_path / f'{tag}.log'
