@@ -782,6 +782,61 @@ def test_bad_configuration_exits_with_one_line(ros, tmp_path, method, parameters
     assert len(lines) == 1 and all(w in lines[0] for w in words), lines
 
 
+def test_two_nodes_of_one_name_both_warn_and_a_refusing_newcomer_ends(ros, tmp_path):
+    """node.unique_name: a newcomer with ``refuse`` ends with one line and status 1; a newcomer
+    with ``warn`` runs on, and both it and the node already running warn in the log, the
+    first also in /diagnostics; the warning clears when the namesake leaves."""
+    first = Harness(PAPER, ros['log_dir'], 'namesake', {'model.method': 'spring'})
+    warning = 'another node named /cdpr_dynamics is running'
+
+    def log(path) -> str:
+        return path.read_text()
+
+    def start(tag, parameters=None):
+        with open(tmp_path / f'{tag}.log', 'w') as out:
+            proc = start_node(PAPER, first.env, {'model.method': 'spring', **(parameters or {})},
+                              stdout=out, stderr=subprocess.STDOUT)
+        return proc, tmp_path / f'{tag}.log'
+
+    def first_log() -> str:
+        first._log.flush()
+        return log(first.log_path)
+
+    def balanced() -> bool:      # the first node's namesake warnings all cleared
+        text = first_log()
+        return text.count(warning) == text.count('no other node named')
+
+    second = None
+    try:
+        refusing, refusing_log = start('refusing', {'node.unique_name': 'refuse'})
+        try:
+            assert refusing.wait(90) == 1
+        finally:
+            stop_process(refusing)
+        lines = log(refusing_log).strip().splitlines()
+        assert lines[-1] == (f'dynamics_node: error: {warning}: each input would be predicted '
+                             'twice and set_parameters reach either (node.unique_name: refuse)')
+        assert 'Traceback' not in log(refusing_log)
+        wait_until(balanced, 30, 'the first node to see the refused one gone')
+        since_diagnostics = len(first.diagnostics)
+        since_log = len(first_log())
+        second, second_log = start('second')
+        wait_until(lambda: warning in log(second_log) or second.poll() is not None, 90,
+                   'the newcomer to warn')
+        wait_until(lambda: warning in first_log()[since_log:], 30, 'the first node to warn')
+        assert second.poll() is None and first.alive()
+        assert first.wait(lambda: any(
+            warning in str(d.get('cdpr_dynamics: model', {}).get('values', {}).get('warnings'))
+            for d in first.diagnostics[since_diagnostics:]))
+        assert stop_process(second) == 0
+        wait_until(lambda: 'no other node named' in first_log()[since_log:], 30,
+                   'the first node to clear its warning')
+    finally:
+        if second is not None:
+            stop_process(second)
+        assert first.close() == 0
+
+
 def test_flood_of_wrenches(ros):
     """10 s of wrenches at 5 kHz from another process: alive, the newest wrenches win, bounded
     memory, still answering after; the rate is reported (and measured by cdpr_bench --dds)."""

@@ -175,8 +175,8 @@ NODE_PARAMETERS: tuple[Param, ...] = (
           '(convolved) and the notch filters cover', 1, 6),
     Param('node.notch_sample_rate_hz', 1000.0, 'sample rate of the notch_filter biquads (Hz); '
           'a mode at or above half of it gets no notch', 1e-3, 1e9),
-    Param('node.unique_name', 'warn', 'another node of this name and namespace in the graph '
-          'at start: warn, or refuse (exit 1)', choices=('warn', 'refuse')),
+    Param('node.unique_name', 'warn', 'another node of this name and namespace in the graph: '
+          'warn (both nodes), or refuse (a newcomer exits 1)', choices=('warn', 'refuse')),
     Param('node.marker_scale', 100.0, 'exaggeration of the predicted-displacement arrow of '
           'cdpr_markers (arrow length / displacement)', 0.0, 1e9),
 )

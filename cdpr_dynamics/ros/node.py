@@ -68,7 +68,9 @@ from msg_adapters.validation import (InvalidMessage, clip, clock_ns, ns_to_stamp
 
 WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
-NAME_CHECK_S = 2.0         # after this long at start, the graph is searched for a namesake
+NAME_CHECK_S = 1.0         # the graph is searched for a namesake this often
+NAME_WINDOW_S = 10.0       # a namesake found within this long of the start: this node is
+#                            the newcomer (discovery takes seconds on a loaded machine)
 OUTPUT_DEPTH = 1000      # predictions kept for a reliable subscriber that lags: 1 s at 1 kHz
 #                          (a depth of 10 drops what a subscriber busy for 10 ms has not taken)
 MARKERS_PERIOD_S = 0.5    # markers of a new equilibrium at most this often (milliseconds each)
@@ -124,6 +126,7 @@ class DynamicsNode(Node):
         self.timings = Timings()
         self._modal_warnings: list[str] = []
         self._budget_warnings: list[str] = []     # a setting over the node's means
+        self._name_warnings: list[str] = []       # a namesake in the graph
         self._shaping_skipped: list[str] = []
         self._logged_warning_kinds = None
         self._lowest_hz = float('nan')
@@ -183,6 +186,7 @@ class DynamicsNode(Node):
         self.diag_dirty = True
         self._diag_last = -np.inf
         self._diag_timer = self.create_timer(CHANGE_PERIOD_S, self.on_diagnostics_timer)
+        self._started = time.monotonic()
         self._name_timer = self.create_timer(NAME_CHECK_S, self._check_name)
         self._publish_tensions(self.get_clock().now().to_msg())
         if self._controller_outputs is not None:
@@ -263,21 +267,27 @@ class DynamicsNode(Node):
         self._budget_warnings = [f'over budget: {reason}'] if reason else []
 
     def _check_name(self) -> None:
-        """Once, after discovery has had its time: another node of this name and namespace
-        in the graph is a warning, or (``node.unique_name: refuse``) ends this one."""
-        self._name_timer.cancel()
+        """Every NAME_CHECK_S: another node of this name and namespace in the graph is a
+        warning (on both nodes, cleared when it leaves); a newcomer (this node found it within
+        NAME_WINDOW_S of its start) with ``node.unique_name: refuse`` ends instead."""
         name, namespace = self.get_name(), self.get_namespace()
         same = sum(1 for n, ns in self.get_node_names_and_namespaces()
                    if (n, ns) == (name, namespace))
+        if (same >= 2) == bool(self._name_warnings):
+            return
+        self.diag_dirty = True
         if same < 2:
+            self._name_warnings = []
+            self.get_logger().info(f'no other node named {self.get_fully_qualified_name()} '
+                                   'any more')
             return
         text = (f'another node named {self.get_fully_qualified_name()} is running: each '
                 'input would be predicted twice and set_parameters reach either')
-        if self.flat['node.unique_name'] == 'refuse':
+        if (self.flat['node.unique_name'] == 'refuse'
+                and time.monotonic() - self._started <= NAME_WINDOW_S):
             raise ConfigError(f'{text} (node.unique_name: refuse)')
-        self._budget_warnings.append(f'name: {text}')
+        self._name_warnings = [f'name: {text}']
         self.get_logger().warning(text)
-        self.diag_dirty = True
 
     # -------------------------------------------------------------------------- inputs
 
@@ -624,7 +634,8 @@ class DynamicsNode(Node):
         extra.update(self._slack_values())
         modal = {'lowest_hz': self._lowest_hz, 'platform_hz': self._platform_hz,
                  'warnings': self._slack_warnings() + self._modal_warnings
-                 + self._shaping_skipped + self._budget_warnings}
+                 + self._shaping_skipped + self._budget_warnings
+                 + self._name_warnings}
         return [diagnostics.model_status(name, hw, self.predictor, modal, extra),
                 diagnostics.input_status(name, 'pose input', self.pose_health, {}, hw),
                 diagnostics.input_status(name, 'wrench input', self.wrench_health,
