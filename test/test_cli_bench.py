@@ -27,6 +27,10 @@ def test_bench_quick_reports_every_stage_and_the_naive_solve_agrees(tmp_path):
     assert set(result['node_pose_update']) >= {'spring', 'catenary', 'fem_n16', 'catenary_exact',
                                                'fem_sag_n16', 'fem_sag_n16_chord_statics'}
     assert result['node_compute_per_wrench']['p99_ms'] > 0
+    slack = result['node_slack_per_wrench']     # the paper demo's load slackens cables
+    assert set(slack) == {'spring', 'fem_n16'}
+    assert all(row['slack_fraction'] > 0.5 and row['aware_slack']['p50_ms'] > 0
+               for row in slack.values())
     modes = result['modes'][0]         # quick mode: fem 16, counted and by the eigensolver
     assert modes['modes'] == 27 and modes['platform_modes'] == 3
     assert modes['counted']['p50_s'] > 0 and modes['eigensolver']['p50_s'] > 0

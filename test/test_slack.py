@@ -132,6 +132,34 @@ def test_equation_of_motion_holds_at_every_step(paper, paper_5hz):
         assert np.linalg.norm(residual) <= 1e-8 * (1500.0 + cables.tension.sum())
 
 
+@pytest.mark.parametrize('rigid', [False, True])
+def test_jacobians_are_the_derivatives_of_the_restoring_force(paper, rigid):
+    """dR/dq and dR/dq' (Newton's matrices) against central differences of R, at a moving
+    state with a slack cable, for a point mass and a rigid platform."""
+    if rigid:
+        settings = six_dof_settings()
+        system = build_system(settings, equilibrium(settings), 'spring', 1)
+    else:
+        settings, _, system, _ = paper
+    cables = CompressionFreeCables(system)
+    nd = cables.nd
+    rng = np.random.default_rng(3)
+    q = np.zeros(nd)
+    q[:3] = 2.0 * cables.tension[0] / cables.k_axial[0] * cables.unit[0]  # cable 0 slack
+    q[3:] = rng.normal(0.0, 2e-4, nd - 3)
+    v = rng.normal(0.0, 0.002, nd)
+    dk = 0.05
+    pull, _, parts = cables.forces(q, v, dk)
+    assert pull[0] == 0.0 and (pull > 1.0).sum() >= nd      # slack and taut cables
+    jq, jv = cables.jacobians(parts)
+    h = 1e-8
+    for matrix, moved in ((jq, lambda e: (q + e, v)), (jv, lambda e: (q, v + e))):
+        numeric = np.column_stack([
+            (cables.forces(*moved(h * e), dk)[1] - cables.forces(*moved(-h * e), dk)[1])
+            / (2 * h) for e in np.eye(nd)])
+        assert_allclose(matrix, numeric, rtol=0, atol=1e-6 * np.abs(jq).max())
+
+
 def test_undamped_free_vibration_through_slack_keeps_its_energy(paper):
     settings, eq, system, _ = paper
     cables = CompressionFreeCables(system)

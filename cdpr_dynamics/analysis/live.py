@@ -154,7 +154,7 @@ class LivePredictor:
         self._stepper: SlackStepper | None = None    # the compression-free model, while slack
         self._taut_steps = 0
         self._last_step_load = None      # the load of the last step (platform DOFs)
-        self.slack_cables: tuple[int, ...] = ()      # cables slack at the last stamp
+        self._slack_forces = None        # cable forces of the last slack step, or None
         self.slack_time_s = 0.0          # predicted time with a slack cable, in total
         self.update_pose(settings.initial_position_m, rotation=settings.initial_rotation,
                          force=True)
@@ -441,9 +441,9 @@ class LivePredictor:
             for _ in range(steps):
                 integrator.step(load)
             if steps:
-                slack = self.cable_force_n() <= 0.0
-                self.slack_cables = tuple(np.flatnonzero(slack).tolist())
-                if self.slack_cables:
+                forces = self.cable_force_n()
+                self._slack_forces = forces if forces.min() <= 0.0 else None
+                if self._slack_forces is not None:
                     self.slack_time_s += steps * self.settings.dt_s
             return
         state, saved = integrator._state, self._saved
@@ -465,7 +465,7 @@ class LivePredictor:
         if steps:
             self._last_step_load = load[:nd].copy()
         if self._stepper is None:
-            self.slack_cables = ()
+            self._slack_forces = None
 
     def _enter_slack(self, q, v, acc=None, force=None) -> None:
         """Switch to the compression-free model at (q, q') (and q'' or the load ``force``
@@ -487,17 +487,22 @@ class LivePredictor:
         self._stepper = stepper
         self._taut_steps = 0
 
+    @property
+    def slack_cables(self) -> tuple[int, ...]:
+        """The cables slack at the last stamp (their indices)."""
+        forces = self._slack_forces
+        return () if forces is None else tuple(np.flatnonzero(forces <= 0.0).tolist())
+
     def _slack_step(self, load: np.ndarray) -> None:
         """One compression-free step; back to the linear model once settled."""
         stepper = self._stepper
         stepper.step(load[:stepper.cables.nd])
-        slack = stepper.pull <= 0.0
-        if slack.any():
+        if not stepper.pull.min() > 0.0:
             self._taut_steps = 0
             self.slack_time_s += self.settings.dt_s
-            self.slack_cables = tuple(np.flatnonzero(slack).tolist())
+            self._slack_forces = stepper.pull
             return
-        self.slack_cables = ()
+        self._slack_forces = None
         self._taut_steps += 1
         if self._taut_steps >= self._settle_steps:
             self._leave_slack()
@@ -535,7 +540,7 @@ class LivePredictor:
                 return False
         integrator._state[:] = after
         self._last_step_load = load[:nd].copy()
-        self.slack_cables = ()
+        self._slack_forces = None
         return True
 
     def prediction(self, point_m=(0.0, 0.0, 0.0)) -> Prediction:
@@ -577,7 +582,7 @@ class LivePredictor:
         self._remainder_ns = 0
         self._stepper = None
         self._last_step_load = None
-        self.slack_cables = ()
+        self._slack_forces = None
         if self.integrator is not None:
             self.integrator.reset()
 

@@ -293,6 +293,8 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
               'modes': bench_modes(settings, repeat, quick),
               'node_compute_per_wrench': bench_node.compute_per_wrench(
                   settings, 2000 if quick else 20000),
+              'node_slack_per_wrench': bench_node.slack_per_wrench(
+                  settings, n=1000 if quick else 4000),
               'node_pose_update': bench_node.pose_updates(
                   settings, NODE_METHODS, n=30 if quick else 300),
               'replay': bench_replay(2.0 if quick else 60.0),
@@ -357,6 +359,17 @@ def summary(result: dict) -> str:
                  f"node compute per wrench ({wrench['method']}, {wrench['dofs']} DOFs, "
                  f"{wrench['amplitude_n']:g} N at 5 Hz) p50/p99 "
                  f"{wrench['p50_ms']:.3f}/{wrench['p99_ms']:.3f} ms")
+    for method, row in result['node_slack_per_wrench'].items():
+        if 'error' in row or not row['slack_fraction']:
+            lines.append(f"node per wrench {method} under frf.force_n: "
+                         + row.get('error', 'no cable slackens'))
+            continue
+        lines.append(f"node per wrench {method}, {row['force_n'][2]:g} N at 5 Hz: linear p50/p99 "
+                     f"{row['linear']['p50_ms'] * 1e3:.0f}/{row['linear']['p99_ms'] * 1e3:.0f} us"
+                     f", slack-aware while slack ({100 * row['slack_fraction']:.0f} % of "
+                     f"wrenches) {row['aware_slack']['p50_ms'] * 1e3:.0f}/"
+                     f"{row['aware_slack']['p99_ms'] * 1e3:.0f} us "
+                     f"(x{row['aware_over_linear_p50']:.2f})")
     for method, row in result['node_pose_update'].items():
         lines.append(f"node pose update {method}: " + (row['error'] if 'error' in row else
                      f"p50/p99 {row['p50_ms']:.3f}/{row['p99_ms']:.3f} ms"))

@@ -75,6 +75,55 @@ def compute_per_wrench(settings, n: int = 20000) -> dict:
     return result
 
 
+def slack_per_wrench(settings, methods=(('spring', 1), ('fem', 16)), n: int = 4000) -> dict:
+    """The wrench callback's work (as :func:`compute_per_wrench`) at 1 kHz under the paper
+    demo's load, ``frf.force_n`` (and ``frf.moment_nm``) at 5 Hz, by a ``node.slack: linear``
+    and a ``node.slack: aware`` predictor fed the same wrenches in turn: per method the
+    linear p50/p99, the aware one's over the wrenches it took while a cable was slack, their
+    p50 ratio, and the fraction of wrenches taken slack."""
+    from cdpr_dynamics.analysis.config import NODE_PARAMETER_BY_NAME
+    from cdpr_dynamics.analysis.live import LivePredictor
+    from msg_adapters.displacement import displacement_message
+    from msg_adapters.inputs import InputHandler
+    from msg_adapters.validation import s_to_stamp
+    from msg_adapters.wrench import wrench_message
+
+    frame = settings.robot.frame_id
+    tolerance = NODE_PARAMETER_BY_NAME['node.quaternion_tolerance'].default
+    results = {}
+    for method, elements in methods:
+        s = settings.replace(method=method, elements_per_cable=elements)
+        handlers = {mode: InputHandler(LivePredictor(s, slack=mode), frame, tolerance)
+                    for mode in ('linear', 'aware')}
+        key = f'{method}_n{elements}' if method == 'fem' else method
+        reason = next(filter(None, (handlers['linear'].predictor.wrench_reason(
+            sign * s.frf_force_n, sign * s.frf_moment_nm) for sign in (1.0, -1.0))), '')
+        if reason:
+            results[key] = {'error': f'frf.force_n not held: {reason}'}
+            continue
+        seconds = {mode: [] for mode in handlers}
+        slack = []
+        for k in range(n):
+            load = np.sin(2 * np.pi * 5.0 * (k + 1) * 1e-3)
+            msg = wrench_message(load * s.frf_force_n, load * s.frf_moment_nm, frame_id=frame,
+                                 stamp=s_to_stamp(100.0 + k * 1e-3))
+            for mode, inputs in handlers.items():
+                start = time.perf_counter()
+                u = inputs.wrench(msg)
+                displacement_message(u, frame, msg.header.stamp)
+                seconds[mode].append(time.perf_counter() - start)
+            slack.append(bool(handlers['aware'].predictor.slack_cables))
+        warm = 100
+        taken = np.asarray(slack[warm:])
+        row = {'linear': _percentiles(seconds['linear'][warm:]),
+               'aware_slack': _percentiles(np.asarray(seconds['aware'][warm:])[taken]),
+               'slack_fraction': float(taken.mean()),
+               'force_n': [float(f) for f in s.frf_force_n]}
+        row['aware_over_linear_p50'] = row['aware_slack']['p50_ms'] / row['linear']['p50_ms']
+        results[key] = row
+    return results
+
+
 def _circle(settings, k: int, n: int) -> np.ndarray:
     """Point k of n on a 5 cm circle around the initial position (each a rebuild)."""
     angle = 2 * np.pi * k / n

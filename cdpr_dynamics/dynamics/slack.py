@@ -31,12 +31,15 @@ T_i u_i . d_i] (point mass), so a free response keeps E = v^T M v / 2 + V(q).
 
 Time stepping is Newmark (the configured alpha, beta) made consistent for the non-linear
 force: each step solves its residual M a + dM M v + R(q, v) - F = 0 (v and a from the Newmark
-relations) by Newton's method with the tangent (a0 + a1 dM) M + (1 + a1 dK) K_t(q) (terms of
-second order in the displacement left out; a line search handles the kinks), to
-|r| <= 1e-10 (sum T_i + |F|), two to four iterations per step. Measured on the paper's
-1500 N, 5 Hz case the error against dt/8 falls 3.5-4.3 times per halving of dt (9e-5 of the
-peak at the paper's dt = 1 ms), second order like the linear Newmark despite the kinks; an
-undamped free vibration through slack keeps its energy to 2e-3 (test_slack).
+relations) by Newton's method with the exact Jacobian a0 M + a1 dM M + dR/dq + a1 dR/dq'
+(:meth:`CompressionFreeCables.jacobians`; a line search handles the kinks), to
+|r| <= 1e-10 (sum T_i + |F|). Newton starts from the step of R linearised at the last state
+and keeps its matrix while the same cables are taut: two evaluations of the forces per step
+(one Newton correction) on the paper's load, a Jacobian only where a step needs more.
+Measured on the paper's 1500 N, 5 Hz case the error against dt/8 falls 3.5-4.3 times per
+halving of dt (9e-5 of the peak at the paper's dt = 1 ms), second order like the linear
+Newmark despite the kinks; an undamped free vibration through slack keeps its energy to 2e-3
+(test_slack).
 
 ``cable_damping=False`` keeps C = dM M + dK K linear and slackens on the elastic tension only
 (the damper may push): it separates the effect of slack from that of where damping sits.
@@ -47,6 +50,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dgesv as gesv
 
 from cdpr_dynamics.dynamics.system import Damping, DynamicsError, PlatformSystem
 from cdpr_dynamics.mechanics.robot import skew
@@ -125,45 +129,96 @@ class CompressionFreeCables:
             self.rotation[:, 3:, 3:] = 0.5 * (k_rot + np.swapaxes(k_rot, 1, 2))
         self.load_rotation = system.load_stiffness    # gravity's moment: slack or not
         self.static_force = np.einsum('cia,ci->a', self.g, self.tension[:, None] * self.unit)
+        n = len(self.length)
         self._g2 = self.g.reshape(-1, nd)                               # (3 n, nd)
-        self._gtg = np.einsum('cia,cib->cab', self.g, self.g)           # G_i^T G_i
+        self._gtg = np.einsum('cia,cib->cab', self.g, self.g).reshape(n, nd * nd)   # G_i^T G_i
+        self._rotation = (self.rotation / self.tension[:, None, None]).reshape(n, nd * nd)
         self._eye = np.eye(nd)
+        self._both = np.zeros((nd, 2))                                  # (q, q') columns
+        self._ones = np.ones(3)
+        self._rest = self.tension - self.k_axial * self.length          # T - k L
 
     def state(self, q: np.ndarray, qdot: np.ndarray, stiffness_factor: float = 0.0):
-        """(cable forces P (n,), restoring force R (nd,), tangent K_t (nd, nd)) at (q, q').
+        """(cable forces P (n,), restoring force R (nd,), tangent K_t = dR/dq (nd, nd)) at
+        (q, q').
 
-        ``stiffness_factor`` is dK: the cables' damping inside P (module docstring). Written
-        as few numpy calls on (n, 3) arrays (a live prediction steps through it while a cable
-        is slack): G_i^T K_i G_i with K_i = w_i t t^T + s_i I is w_i h_i h_i^T + s_i G_i^T G_i,
-        h_i = G_i^T t_i.
+        ``stiffness_factor`` is dK: the cables' damping inside P (module docstring).
         """
-        point = self.nd == 3          # a point mass: G_i = I, d_i = q for every cable
-        if point:
+        pull, restoring, parts = self.forces(q, qdot, stiffness_factor)
+        return pull, restoring, self.jacobians(parts)[0]
+
+    def forces(self, q: np.ndarray, qdot: np.ndarray, stiffness_factor: float = 0.0):
+        """(P (n,), R (nd,), parts): :meth:`state` without the tangent, which
+        :meth:`jacobians` makes from ``parts`` where it is needed.
+
+        Written as few numpy calls on (n, 3) arrays (a live prediction steps through it while a
+        cable is slack).
+        """
+        dk = stiffness_factor
+        if self.nd == 3:         # a point mass: G_i = I, d_i = q for every cable
             d, d_dot = q, qdot
         else:
-            n = self.length.shape[0]
-            d = (self._g2 @ q).reshape(n, 3)
-            d_dot = (self._g2 @ qdot).reshape(n, 3)
+            both = self._both
+            both[:, 0] = q
+            both[:, 1] = qdot
+            moved = (self._g2 @ both).reshape(-1, 3, 2)
+            d, d_dot = moved[:, :, 0], moved[:, :, 1]
         chord = self.chord - d
-        length = np.sqrt((chord * chord).sum(axis=1))
+        length = np.sqrt((chord * chord) @ self._ones)
         t = chord / length[:, None]
-        along = (t * d_dot).sum(axis=1)                        # -(stretch rate)
-        pull = np.maximum(0.0, self.tension + self.k_axial * (
-            length - self.length - stiffness_factor * along))
+        along = (t * d_dot) @ self._ones if self.nd == 6 else t @ d_dot    # -(stretch rate)
+        pull = np.maximum(0.0, self._rest + self.k_axial * (length - dk * along))
         per_length = pull / length
-        force = pull[:, None] * t - (stiffness_factor * per_length)[:, None] \
-            * (d_dot - along[:, None] * t)
-        axial = np.where(pull > 0.0, self.k_axial, 0.0) - per_length
-        if point:
-            restoring = self.static_force - force.sum(axis=0)
-            tangent = (t.T * axial) @ t + per_length.sum() * self._eye
-            return pull, restoring, tangent
-        restoring = self.static_force - self._g2.T @ force.reshape(-1)
-        h = np.matmul(t[:, None, :], self.g)[:, 0, :]                         # (n, nd)
-        rot = np.tensordot(pull / self.tension, self.rotation, 1) + self.load_rotation
-        restoring += rot @ (q + stiffness_factor * qdot)
-        tangent = (h.T * axial) @ h + np.tensordot(per_length, self._gtg, 1) + rot
-        return pull, restoring, tangent
+        # P t - dK s w with w = d' - a t, the transverse velocity: t (P + dK s a) - dK s d'
+        damper = dk * per_length
+        parts = (dk, pull, t, d_dot, length, along, per_length, None, None)
+        if self.nd == 3:
+            return pull, self.static_force - t.T @ (pull + damper * along) \
+                + damper.sum() * qdot, parts
+        force = t * (pull + damper * along)[:, None] - damper[:, None] * d_dot
+        rot = (pull @ self._rotation).reshape(6, 6) + self.load_rotation
+        rotated = q + dk * qdot
+        restoring = self.static_force - self._g2.T @ force.reshape(-1) + rot @ rotated
+        return pull, restoring, parts[:7] + (rot, rotated)
+
+    def jacobians(self, parts) -> tuple[np.ndarray, np.ndarray]:
+        """(dR/dq, dR/dq') (nd, nd) of :meth:`forces`' ``parts``, exact (Newton converges
+        quadratically through them): per taut cable, with s = P/l', a = t.d', w = d' - a t
+        the transverse velocity and N = I - t t^T, the blocks G^T B G of
+
+            B_q = k t t^T + s (1 + dK a / l') N - dK (k - s)/l' (t w^T + w t^T)
+                  + dK^2 k / l'^2 w w^T,
+            B_v = dK (k t t^T + s N) - dK^2 k / l' w t^T,
+
+        plus, for a rigid platform, the rotational terms' own and through P (zero for a
+        slack cable); written with h = G^T t, m = G^T w and G^T N G = G^T G - h h^T.
+        """
+        dk, pull, t, d_dot, length, along, per_length, rot, rotated = parts
+        across = d_dot - along[:, None] * t              # w
+        k = np.where(pull > 0.0, self.k_axial, 0.0)
+        spread = per_length * (1.0 + dk * along / length)
+        cross = dk * (k - per_length) / length
+        k_dk_l = dk * k / length
+        if rot is None:
+            h, m = t, across
+            gtg_q, gtg_v = spread.sum() * self._eye, dk * per_length.sum() * self._eye
+        else:
+            hm = np.matmul(np.stack((t, across), axis=1), self.g)             # (n, 2, nd)
+            h, m = hm[:, 0], hm[:, 1]
+            nd = self.nd
+            gtg_q = (spread @ self._gtg).reshape(nd, nd)
+            gtg_v = dk * (per_length @ self._gtg).reshape(nd, nd)
+        hq = h * (k - spread)[:, None] - m * cross[:, None]
+        mq = m * (dk * k_dk_l / length)[:, None] - h * cross[:, None]
+        jq = hq.T @ h + mq.T @ m + gtg_q
+        jv = (h * (dk * (k - per_length))[:, None] - m * (dk * k_dk_l)[:, None]).T @ h + gtg_v
+        if rot is not None:
+            n = len(length)
+            turned = (self._rotation.reshape(n, -1, self.nd) @ rotated)   # (n, nd): dR/dP_i
+            dpull = m * k_dk_l[:, None] - h * k[:, None]                  # dP_i/dq
+            jq = jq + rot + turned.T @ dpull
+            jv = jv + dk * rot - dk * turned.T @ (h * k[:, None])
+        return jq, jv
 
     def potential(self, q: np.ndarray) -> float:
         """V(q) with grad V = R(q) (exact without the rigid platform's rotational term)."""
@@ -204,49 +259,95 @@ class SlackStepper:
             dk = 0.0
         self.dk = dk
         self.jacobian_constant = self.a0 * self.m + self.a1 * self.linear
+        # rows (q, v, a) of the state: c_a = wa . (q, v, a), c_v = wv . (q, v, a) (step)
+        self._wa = -np.array([self.a0, self.a2, self.a3])
+        self._wv = np.array([0.0, 1.0, self.a6]) + self.a7 * self._wa
+        self._we = self._wv + np.array([self.a1, -1.0, 0.0])     # v_new - v at q_new = q
+        self._offset = np.hstack([self.m * wa + self.linear * wv          # M c_a + C c_v
+                                  for wa, wv in zip(self._wa, self._wv)])
         self.scale = float(np.abs(cables.tension).sum())
         self.q, self.v, self.acc = np.zeros(nd), np.zeros(nd), np.zeros(nd)
         self.pull = cables.tension.copy()
         self.iterations = 0
+        # R at the state, the matrices of the last Newton step and the cables taut there
+        self._restoring, self._jacobians, self._taut = None, None, None
 
     def start(self, q, v, force) -> None:
         """Set the state (q, v) and the acceleration that balances ``force`` there."""
         self.q = np.array(q, dtype=float)
         self.v = np.array(v, dtype=float)
-        self.pull, restoring, _ = self.cables.state(self.q, self.v, self.dk)
-        self.acc = np.linalg.solve(self.m, force - self.linear @ self.v - restoring)
+        self.pull, self._restoring, parts = self.cables.forces(self.q, self.v, self.dk)
+        self._jacobians = self._newton_matrices(parts)
+        self._taut = self.pull > 0.0
+        self.acc = np.linalg.solve(self.m, force - self.linear @ self.v - self._restoring)
 
-    def _residual(self, q_new, force):
-        acc_new = self.a0 * (q_new - self.q) - self.a2 * self.v - self.a3 * self.acc
-        v_new = self.v + self.a6 * self.acc + self.a7 * acc_new
-        pull, restoring, tangent = self.cables.state(q_new, v_new, self.dk)
-        r = self.m @ acc_new + self.linear @ v_new + restoring - force
-        return r, acc_new, v_new, pull, tangent
+    def _residual(self, q_new, offset, v_offset):
+        """(r, v, P, R, parts) at q_new: r = a0 M q_new + a1 C q_new + ``offset`` + R with
+        v = a1 q_new + ``v_offset`` (the Newmark relations of the step, :meth:`step`)."""
+        v_new = self.a1 * q_new + v_offset
+        pull, restoring, parts = self.cables.forces(q_new, v_new, self.dk)
+        return self.jacobian_constant @ q_new + offset + restoring, v_new, pull, restoring, parts
+
+    def _newton_matrices(self, parts):
+        """(dR/dq', J = dr/dq_new = a0 M + a1 C + dR/dq + a1 dR/dq') at :meth:`forces`'
+        ``parts``."""
+        jq, jv = self.cables.jacobians(parts)
+        return jv, self.jacobian_constant + jq + self.a1 * jv
+
+    @staticmethod
+    def _newton_step(matrices, r) -> np.ndarray:
+        """-J^-1 r (LAPACK's gesv: numpy's wrapper costs several times a 3 x 3 or 6 x 6
+        solve)."""
+        x, info = gesv(matrices[1], r)[2:]
+        if info:
+            raise DynamicsError('slack-aware Newmark: singular Newton matrix')
+        return -x
 
     def step(self, force) -> np.ndarray:
-        """One step to the load ``force`` (nd,) at its end; returns q (the stepper's own)."""
-        dt = self.dt_s
+        """One step to the load ``force`` (nd,) at its end; returns q (the stepper's own).
+
+        With a_new = a0 q_new + c_a and v_new = a1 q_new + c_v (Newmark) the residual is
+        r(q_new) = (a0 M + a1 C) q_new + M c_a + C c_v - F + R(q_new, v_new). Newton starts from
+        the step of R linearised at the last state, and reuses the last Newton matrix while
+        the same cables are taut (recomputed where a step needs a second Newton iteration):
+        most steps converge in two evaluations of the forces and no Jacobian.
+        """
         tol = RESIDUAL_TOL * (self.scale + math.sqrt(float(force @ force)))
-        q_new = self.q + dt * self.v + 0.5 * dt * dt * self.acc          # predictor
-        r, acc_new, v_new, pull, tangent = self._residual(q_new, force)
+        q = self.q
+        state = np.concatenate((q, self.v, self.acc))
+        rows = state.reshape(3, -1)
+        c_a, c_v = self._wa @ rows, self._wv @ rows
+        offset = self._offset @ state - force
+        matrices = self._jacobians
+        linear = (self.jacobian_constant @ q + offset + self._restoring
+                  + matrices[0] @ (self._we @ rows))
+        q_new = q + self._newton_step(matrices, linear)
+        r, v_new, pull, restoring, parts = self._residual(q_new, offset, c_v)
         norm = math.sqrt(float(r @ r))
+        fresh = False
         for it in range(1, NEWTON_ITERATIONS + 1):
             if norm <= tol:
                 break
-            jacobian = self.jacobian_constant + (1.0 + self.a1 * self.dk) * tangent
-            step = np.linalg.solve(jacobian, -r)
+            if fresh or not np.array_equal(pull > 0.0, self._taut):
+                matrices = self._newton_matrices(parts)
+                self._taut = pull > 0.0
+            fresh = True
+            step = self._newton_step(matrices, r)
             for halving in range(40):   # line search: the force has kinks where cables slacken
                 trial_q = q_new + 0.5 ** halving * step
-                trial = self._residual(trial_q, force)
+                trial = self._residual(trial_q, offset, c_v)
                 trial_norm = math.sqrt(float(trial[0] @ trial[0]))
                 if trial_norm < norm:
                     break
             q_new, norm = trial_q, trial_norm
-            r, acc_new, v_new, pull, tangent = trial
+            r, v_new, pull, restoring, parts = trial
         else:
             raise DynamicsError(f'slack-aware Newmark: Newton did not converge (residual '
                                 f'{norm:.3g} N)')
-        self.q, self.v, self.acc, self.pull, self.iterations = q_new, v_new, acc_new, pull, it
+        self.q, self.v, self.acc = q_new, v_new, self.a0 * q_new + c_a
+        self.pull, self.iterations = pull, it
+        self._restoring = restoring
+        self._jacobians = matrices
         return q_new
 
 
