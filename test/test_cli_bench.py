@@ -3,6 +3,7 @@ import json
 import subprocess
 
 import numpy as np
+import pytest
 
 from conftest import installed
 
@@ -57,3 +58,16 @@ def test_compute_per_wrench_scales_its_load_to_what_the_cables_hold():
     held = [not predictor.wrench_reason((0.0, 0.0, sign * scale * amplitude))
             for scale in (1.0, 2.0) for sign in (1.0, -1.0)]
     assert held[:2] == [True, True] and not all(held[2:])   # twice as much is not held
+
+
+@pytest.mark.ros
+def test_slack_rate_accounts_for_every_wrench_of_the_demo_load(ros_env):
+    """cdpr_bench --dds's slack row: the paper's 1500 N at 5 Hz slackens cables in the node's
+    slack-aware prediction, and every wrench sent is predicted, rejected or counted lost."""
+    from cdpr_dynamics.analysis.config import default_config_path
+    from cdpr_dynamics.cli.bench_node import slack_rate
+    row = slack_rate(str(default_config_path()), 1000.0, 1.0, {'model.method': 'spring'})
+    assert row['slack'] == 'aware' and row['method'] == 'spring' and row['force_n'] == 1500.0
+    assert row['sent'] == 1000 and row['predicted'] > 0
+    assert row['predicted'] + row['rejected'] + row['lost'] == row['sent'] and row['lost'] >= 0
+    assert 0.0 < row['slack_time_s'] <= 1.0

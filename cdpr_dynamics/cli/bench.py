@@ -310,6 +310,12 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
                                        bench_node.FRF_CALL_POINTS)
         result['recording'] = bench_node.recording_throughput(dds_config,
                                                               duration_s=1.0 if quick else 3.0)
+        # the paper demo's load (frf.force_n at 5 Hz), 1 kHz, node.slack: aware
+        result['slack_rate'] = {
+            f'{method}_n{n}' if method == 'fem' else method: bench_node.slack_rate(
+                dds_config, 1000.0, 2.0 if quick else 10.0,
+                {'model.method': method, 'model.elements_per_cable': n})
+            for method, n in (('spring', 1), ('fem', 16))}
         result['controller'] = bench_node.controller_rate(dds_config,
                                                           duration_s=2.0 if quick else 10.0)
         # the heavy-sag 6-DOF robot, fem_sag 16: pose updates of milliseconds at 50 Hz, solved
@@ -407,6 +413,13 @@ def summary(result: dict) -> str:
                      f"{rec['topics'].get('/wrench', 0)} of {rec['wrenches_sent']} wrenches "
                      f"recorded, {rec['messages_per_s']:.0f} messages/s (all topics), "
                      f"{rec['bytes_per_message']:.0f} bytes/message (file)")
+        for method, row in result['slack_rate'].items():
+            lines.append(f"node.slack {row['slack']} {method}, {row['force_n']:g} N at 5 Hz, "
+                         f"{row['rate_hz']:.0f} Hz for {row['duration_s']:.0f} s: "
+                         f"{row['predicted']}/{row['sent']} predicted, {row['lost']} lost, "
+                         f"{row['rejected']} rejected, {row['slack_time_s']:.2f} s slack; "
+                         f"compute p50/p99 {row['compute_ms_p50']:.3f}/"
+                         f"{row['compute_ms_p99']:.3f} ms")
         lines.append(_controller_line('controller', result['controller']))
         for mode, ctl in result['controller_heavy_sag'].items():
             lines.append(_controller_line(f'heavy_sag_6dof, node.rebuild {mode}:', ctl))

@@ -460,9 +460,10 @@ def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.
 
 
 def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world',
-          subscribers: int = 1) -> dict:
-    """Publish wrenches at ``rate_hz`` for ``duration_s``; stamps start at ``start_s``, once
-    ``subscribers`` subscriptions (the node, and e.g. a recorder) have matched."""
+          subscribers: int = 1, force_n: float = 1000.0) -> dict:
+    """Publish wrenches at ``rate_hz`` for ``duration_s`` (``force_n`` along z at 5 Hz);
+    stamps start at ``start_s``, once ``subscribers`` subscriptions (the node, and e.g. a
+    recorder) have matched."""
     import rclpy
     from geometry_msgs.msg import WrenchStamped
     from rclpy.node import Node
@@ -489,7 +490,7 @@ def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world
         while sent < due:
             t = start_s + sent * period
             msg.header.stamp = s_to_stamp(t)
-            msg.wrench.force.z = 1000.0 * np.sin(2 * np.pi * 5.0 * (t - start_s))
+            msg.wrench.force.z = force_n * np.sin(2 * np.pi * 5.0 * (t - start_s))
             pub.publish(msg)
             sent += 1
         time.sleep(min(period, 0.0005))
@@ -688,6 +689,43 @@ def controller_rate(config, wrench_hz: float = 1000.0, pose_hz: float = 50.0,
     return result
 
 
+def slack_rate(config, rate_hz: float = 1000.0, duration_s: float = 10.0,
+               parameters: dict | None = None) -> dict:
+    """The paper demo's load over DDS: ``frf.force_n``'s z (1500 N on the paper robot) at 5 Hz
+    as wrenches at ``rate_hz`` for ``duration_s``, to the node (``node.slack: aware`` unless
+    ``parameters`` say otherwise) with ``cdpr_record`` beside it: wrenches sent, predicted and
+    rejected by the node (its /diagnostics counts, from the recording), lost (sent, neither
+    predicted nor rejected), predictions recorded, and the node's predicted slack time."""
+    from cdpr_dynamics.recording.reader import read_messages, recording_info
+    from msg_adapters.diagnostics import read_statuses
+
+    settings = load_settings(config)
+    parameters = {'node.slack': 'aware', **(parameters or {})}
+    path, sent = _beside_node_and_recorder(
+        'slack', config, parameters,
+        ['flood', '--rate', str(rate_hz), '--duration', str(duration_s), '--frame',
+         settings.robot.frame_id, '--subscribers', '2', '--force-n',
+         str(float(settings.frf_force_n[2]))], duration_s + 90)
+    recorded = {name.lstrip('/'): t.message_count
+                for name, t in recording_info(path).topics.items()}
+    last = {}
+    for record in read_messages(path, ['/diagnostics']):
+        for name, status in read_statuses(record.message).items():
+            last[name.split(': ', 1)[-1]] = status['values']
+    wrench_in, model = last.get('wrench input', {}), last.get('model', {})
+    predicted, rejected = int(wrench_in.get('accepted', 0)), int(wrench_in.get('rejected', 0))
+    return {'rate_hz': rate_hz, 'duration_s': duration_s,
+            'force_n': float(settings.frf_force_n[2]), 'slack': model.get('slack', ''),
+            'method': model.get('method', ''), 'sent': sent['sent'],
+            'achieved_send_hz': sent['rate_hz'], 'predicted': predicted, 'rejected': rejected,
+            'lost': sent['sent'] - predicted - rejected,
+            'recorded_predictions': recorded.get('predicted_displacement', 0),
+            'slack_time_s': float(model.get('slack_time_s', 'nan')),
+            'compute_ms_p50': float(wrench_in.get('compute_ms_p50', 'nan')),
+            'compute_ms_p99': float(wrench_in.get('compute_ms_p99', 'nan')),
+            'cpu_percent': sent.get('cpu_percent', {})}
+
+
 def echo() -> None:
     """The reference of the latency: a trivial rclpy node that answers each ``wrench`` with
     a ``predicted_displacement`` of the same stamp (sensor-data QoS in, depth 10 out), spun
@@ -728,6 +766,7 @@ def main(argv=None) -> int:
     fl.add_argument('--start-s', type=float, default=1000.0)
     fl.add_argument('--frame', default='world')
     fl.add_argument('--subscribers', type=int, default=1)
+    fl.add_argument('--force-n', type=float, default=1000.0)
     co = sub.add_parser('controller', help='publish wrenches and moving poses at rates')
     co.add_argument('--config', required=True)
     co.add_argument('--wrench-hz', type=float, default=1000.0)
@@ -744,7 +783,7 @@ def main(argv=None) -> int:
                                     args.subscribers)))
         return 0
     print(json.dumps(flood(args.rate, args.duration, args.start_s, args.frame,
-                           args.subscribers)))
+                           args.subscribers, args.force_n)))
     return 0
 
 
