@@ -331,6 +331,47 @@ def test_counted_frequencies_with_pulleys_are_the_matrices_eigenvalues(method, n
     assert_allclose(natural_frequencies(system, f_max_hz=40.0), dense, rtol=1e-8)
 
 
+def test_clamped_roots_solve_the_anchor_spring_condition():
+    """The j-th mode of a span on an anchor spring: tan z = -beta z in ((j - 1/2) pi, j pi),
+    j pi without the spring, and the count passes each root (platform end fixed)."""
+    from cdpr_dynamics.models.dsm import ContinuousCables, clamped_roots
+    j = np.arange(1, 40)[:, None]
+    beta = np.array([0.0, 1e-4, 0.3, 7.0])
+    z = clamped_roots(j, beta)
+    assert_allclose(z[:, 0], np.pi * j[:, 0], rtol=1e-15)
+    assert_allclose(np.tan(z[:, 1:]), -beta[1:] * z[:, 1:], rtol=1e-9, atol=1e-12)
+    assert np.all((z[:, 1:] > (j - 0.5) * np.pi) & (z[:, 1:] < j * np.pi))
+    cables = single(tension=120.0)
+    end = cables.anchor_end
+    f_axial, f_normal = end.compliance(cables.ea_n, cables.tension_n)
+    members = ContinuousCables(cables.unit, cables.length_m, cables.tension_n, cables.ea_n,
+                               cables.mass_per_length_kg_m,
+                               anchor_compliance=np.stack([f_axial, f_normal]),
+                               normal=end.plane_normal)
+    w1 = np.pi * np.sqrt(120.0 / cables.mass_per_length_kg_m) / cables.length_m[0]
+    normal = clamped_roots(np.arange(1, 4), 120.0 * f_normal[0] / cables.length_m[0]) / np.pi
+    # below the first axial mode: transverse in the plane at j w1, normal to it at z_j w1 / pi
+    for w, expected in ((0.99 * normal[0] * w1, 0), (1.001 * normal[0] * w1, 1),
+                        (1.001 * w1, 2), (1.001 * normal[2] * w1, 5)):
+        assert members.fixed_end_mode_count([w])[0] == expected
+
+
+@pytest.mark.parametrize('config', ['paper_pulleys', 'suspended_3cable'])
+def test_dsm_frequencies_with_pulleys_are_the_limit_of_fem(config):
+    """dsm's counted frequencies with anchor ends against fem's dense eigenvalues (other
+    matrices, other solver): fem's error falls by 2-4.4x per doubling of n (first order at
+    the massless anchor node) towards dsm, down to 1e-4 at n = 256."""
+    from cdpr_dynamics.dynamics.modes import natural_frequencies
+    s = load_settings(CONFIG / f'{config}.yaml')
+    eq = pipeline.equilibrium(s)
+    assert eq.cables.anchor_end is not None
+    dsm = natural_frequencies(pipeline.build_system(s, eq, 'dsm', 0), 12)
+    errors = [np.abs(natural_frequencies(pipeline.build_system(s, eq, 'fem', n), 12) / dsm
+                     - 1.0).max() for n in (64, 128, 256)]
+    assert 2.0 < errors[0] / errors[1] < 4.4 and 2.0 < errors[1] / errors[2] < 4.4, errors
+    assert errors[2] < 1e-4
+
+
 def suspended_three_cables(com=(0.0, 0.02, -0.2)):
     """A suspended 3-cable robot: pulleys (22.5 mm) on the ceiling fed horizontally from
     outside, a 6-DOF platform hanging below with its centre of mass below its attachments."""

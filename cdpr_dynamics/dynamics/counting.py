@@ -30,7 +30,7 @@ import numpy as np
 import scipy.linalg
 
 from cdpr_dynamics.dynamics.system import DynamicsError, PlatformSystem
-from cdpr_dynamics.models.dsm import ContinuousCables
+from cdpr_dynamics.models.dsm import ContinuousCables, clamped_roots
 
 TOL_HZ = 1e-9           # brackets of the counted frequencies (Hz)
 SECTIONS = 5            # points per bracket and sweep of the multisection
@@ -59,9 +59,6 @@ def counter(system: PlatformSystem) -> 'Counter | None':
         if np.any(~(np.asarray(members.tension_n) > 0.0)):
             raise DynamicsError('dsm natural frequencies need every cable taut (T > 0): '
                                 + '; '.join(assembly.warnings))
-        if members.anchor_compliance is not None:
-            raise DynamicsError('dsm natural frequencies of cables with pulleys or winch-side '
-                                'cable are not implemented (its FRF is): use fem')
         return Counter(system, _ContinuousInterior(members))
     if assembly.blocks.nodes < 2:
         return None
@@ -250,11 +247,14 @@ class _ContinuousInterior:
                                                  per_cable=True)
 
     def poles(self, lam_max: float) -> np.ndarray:
-        """Sorted (j w_1)^2 up to lam_max, axial and transverse fundamentals w_1 = pi c/L."""
+        """Sorted clamped eigenvalues up to lam_max: (z_j w_1 / pi)^2 per direction, w_1 = pi c/L
+        and z_j = j pi, or the roots of :func:`~cdpr_dynamics.models.dsm.clamped_roots` on
+        an anchor spring."""
+        fundamental, beta, _ = self.members.clamped_kinds()
         found = []
-        for fundamental in self.members.fixed_end_fundamentals_rad_s():
-            j = np.arange(1, int(math.sqrt(lam_max) / fundamental.min()) + 1)
-            found.append(((j[None, :] * fundamental[:, None]) ** 2).ravel())
+        for w1, b in zip(fundamental, beta):
+            j = np.arange(1, int(math.sqrt(lam_max) / w1.min()) + 2)[:, None]
+            found.append(((clamped_roots(j, b) / math.pi * w1) ** 2).ravel())
         values = np.concatenate(found)
         return np.unique(values[values <= lam_max])
 
@@ -263,22 +263,22 @@ class _ContinuousInterior:
         return (self.counts(lam), None) if count else (None, self.members(lam))
 
     def clamped_ends(self, lam: np.ndarray, jumps: np.ndarray):
-        """:meth:`_UniformInterior.clamped_ends` of continuous cables, closed form: the
-        clamped modes sqrt(2/(mu L)) sin(j pi x/L) (mass normalised) at lam = (j w_1)^2 push
-        the end with k sqrt(2/(mu L)) (j pi/L) along their direction (k = EA axially, T
-        transversely; up to sign), with no end-node mass; the scale is the largest force
-        component."""
+        """:meth:`_UniformInterior.clamped_ends` of continuous cables, closed form: a clamped
+        mode sin(z_j (L - x)/L) (x from the anchor end, z_j = j pi on a fixed anchor, else
+        :func:`~cdpr_dynamics.models.dsm.clamped_roots`), of modal mass
+        mu L (1 - sin(2 z_j)/(2 z_j))/2 (the anchor springs are massless), pushes the end with
+        k z_j / L per unit amplitude along its direction (k = EA axially, T transversely;
+        up to sign), with no end-node mass; the scale is the largest force component."""
         members = self.members
         length = members.length_m
-        omega = np.sqrt(np.asarray(lam, dtype=float))[:, None, None]        # (g, 1, 1)
-        j = omega / np.stack(members.fixed_end_fundamentals_rad_s())       # (g, 2, ncab)
-        whole = np.round(j)
-        hit = (np.abs(j - whole) < 1e-6) & (whole >= 1)
-        stiffness = np.stack([np.full(length.shape, members.ea_n), members.tension_n])
-        force = np.where(hit, stiffness * np.sqrt(2.0 / (members.mass_per_length_kg_m * length))
-                         * whole * math.pi / length, 0.0)
+        fundamental, beta, k = members.clamped_kinds()
+        x = np.sqrt(np.asarray(lam, dtype=float))[:, None, None] / fundamental   # (g, 3, ncab)
+        z = clamped_roots(np.maximum(np.ceil(x - 1e-6), 1.0), beta)
+        hit = np.abs(x - z / math.pi) < 1e-6
+        modal_mass = 0.5 * members.mass_per_length_kg_m * length * (1.0 - np.sin(2 * z) / (2 * z))
+        force = np.where(hit, k * z / length / np.sqrt(modal_mass), 0.0)
         if self._directions is None:
-            self._directions = _directions(members.unit)
+            self._directions = _directions(members.unit, members.normal)
         return _closed_form_ends(self._directions, np.abs(self._directions).max(axis=2), jumps,
                                  hit, force, np.zeros_like(force), np.abs(force))
 
@@ -640,13 +640,14 @@ class Counter:
 
 def _closed_form_ends(directions, row_size, jumps, hit, force, mass, size):
     """:func:`_stacked_ends` from closed-form clamped modes: ``hit``, ``force``, ``mass`` and
-    ``size`` (g, 2, ncab) per eigenvalue, kind (axial, transverse: two directions) and chain,
+    ``size`` (g, 2 or 3, ncab) per eigenvalue, kind (axial, transverse: two directions; or
+    axial and each transverse direction) and chain,
     whether a clamped mode of that kind sits at the eigenvalue, its end reaction and mass
     coupling along each of its directions (``directions`` (ncab, 3, 3), axial row first) and
     the scale of its reaction's terms per unit ``row_size`` (scalar or (ncab, 3)); ``jumps``
     (g, ncab) modes taken per chain, directions in order."""
     def per_row(a):
-        return np.swapaxes(a[:, [0, 1, 1]], 1, 2)                          # (g, ncab, 3)
+        return np.swapaxes(a if a.shape[1] == 3 else a[:, [0, 1, 1]], 1, 2)  # (g, ncab, 3)
 
     valid = per_row(hit)
     take = valid & (np.cumsum(valid, axis=2) <= np.asarray(jumps)[:, :, None])
@@ -657,10 +658,20 @@ def _closed_form_ends(directions, row_size, jumps, hit, force, mass, size):
         group, scale
 
 
-def _directions(unit) -> np.ndarray:
+def _directions(unit, normal=None) -> np.ndarray:
     """(n, 3, 3) the clamped modes' directions of straight cables as rows: the axial u, then
-    the basis of the transverse plane (:func:`_normal_planes`)."""
-    return np.concatenate([unit[:, None], np.swapaxes(_normal_planes(unit), 1, 2)], axis=1)
+    the basis of the transverse plane (:func:`_normal_planes`); where ``normal`` (n, 3) has a
+    pulley plane's normal, the in-plane direction normal x u and the normal last."""
+    rows = np.concatenate([unit[:, None], np.swapaxes(_normal_planes(unit), 1, 2)], axis=1)
+    if normal is not None:
+        normal = np.asarray(normal, dtype=float)
+        pulley = np.einsum('ci,ci->c', normal, normal) > 0.0
+        m = normal[pulley] - np.sum(normal[pulley] * unit[pulley], axis=1, keepdims=True) \
+            * unit[pulley]
+        m /= np.linalg.norm(m, axis=1, keepdims=True)
+        rows[pulley, 1] = np.cross(m, unit[pulley])
+        rows[pulley, 2] = m
+    return rows
 
 
 def _normal_planes(unit) -> np.ndarray:

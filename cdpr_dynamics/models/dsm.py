@@ -23,7 +23,8 @@ consistent mass), whose end stiffness and natural frequencies converge to it as 
 There are no finite matrices (``blocks`` is None): natural frequencies and classified modes
 come from Wittrick-Williams counting on the condensed platform dynamic stiffness, with the
 cables' fixed-end modes (:meth:`ContinuousCables.fixed_end_mode_count`) as J0
-(:mod:`cdpr_dynamics.dynamics.modes`).
+(:mod:`cdpr_dynamics.dynamics.modes`); on an anchor end those are the modes of the span
+clamped at the platform and held by the anchor springs (:func:`clamped_roots`).
 
 An anchor end (:class:`cdpr_dynamics.models.base.AnchorEnd`) is a massless spring of compliance
 f between the ground and the cable's anchor end, in a direction of its own: with the fixed-
@@ -305,22 +306,58 @@ class ContinuousCables:
                                   math.pi * np.sqrt(self.tension_n / mu) / self.length_m, np.nan)
         return axial, transverse
 
-    def fixed_end_mode_count(self, omega_rad_s, per_cable: bool = False) -> np.ndarray:
-        """J0: how many natural frequencies of the cables, both ends fixed, lie below omega.
+    def clamped_kinds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(fundamental pi c / L, beta, k), (3, n) each, of the three directions of each cable
+        with the platform end fixed: axial (k = EA), transverse in the pulley plane and
+        transverse normal to it (k = T). beta = k f / L is the anchor end's compliance f
+        (0: fixed anchor) over the span's own, L / k."""
+        axial, transverse = self.fixed_end_fundamentals_rad_s()
+        fundamental = np.stack([axial, transverse, transverse])
+        k = np.stack([np.full(self.length_m.shape, self.ea_n), self.tension_n, self.tension_n])
+        beta = np.zeros_like(fundamental)
+        if self.anchor_compliance is not None:
+            beta[[0, 2]] = k[[0, 2]] * self.anchor_compliance / self.length_m
+        return fundamental, beta, k
 
-        Cable i contributes #{j >= 1 : j w_a < omega} + 2 #{j >= 1 : j w_t < omega}.
+    def fixed_end_mode_count(self, omega_rad_s, per_cable: bool = False) -> np.ndarray:
+        """J0: how many natural frequencies of the cables, platform end fixed, lie below omega.
+
+        A direction without anchor compliance has j pi c / L (j >= 1); one on an anchor spring
+        has the roots z_j of z cot z = -1/beta (:func:`clamped_roots`), one in each
+        ((j - 1/2) pi, j pi): x = omega L / (pi c) passes floor(x) of them, and the next one
+        where frac(x) > 1/2 and beta z cot z < -1 (Wittrick-Williams on the anchor node: the
+        span clamped at both ends, j pi, plus the sign of 1/f + (k/L) z cot z).
         ``omega_rad_s`` (nw,) -> (nw,) int, or (nw, n) per cable.
         """
-        omega = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))[:, None]
-        axial, transverse = self.fixed_end_fundamentals_rad_s()
-        if np.any(~(transverse > 0.0)):
+        omega = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))[:, None, None]
+        fundamental, beta, _ = self.clamped_kinds()
+        if np.any(~(fundamental > 0.0)):
             raise ValueError('the fixed-end mode count needs every cable taut (T > 0)')
-
-        def below(fundamental):
-            return np.maximum(np.ceil(omega / fundamental) - 1.0, 0.0)
-
-        counts = (below(axial) + 2.0 * below(transverse)).astype(int)
+        x = omega / fundamental                                           # (nw, 3, n)
+        counts = np.maximum(np.ceil(x) - 1.0, 0.0)
+        sprung = beta > 0.0
+        if sprung.any():
+            whole = np.floor(x)
+            z = math.pi * x
+            with np.errstate(divide='ignore', invalid='ignore'):
+                past = (x - whole > 0.5) & (beta * z / np.tan(z) < -1.0)
+            counts = np.where(sprung, whole + past, counts)
+        counts = counts.sum(axis=1).astype(int)
         return counts if per_cable else counts.sum(axis=1)
+
+
+def clamped_roots(j, beta) -> np.ndarray:
+    """The j-th root z_j of z cot z = -1/beta (beta > 0), in ((j - 1/2) pi, j pi): the j-th
+    mode of a span clamped at one end and on a spring of compliance beta L / k at the other;
+    j pi where beta is 0. Bisection on beta z cos z + sin z to round-off, vectorised."""
+    j, beta = np.broadcast_arrays(np.asarray(j, dtype=float), np.asarray(beta, dtype=float))
+    lo, hi = (j - 0.5) * math.pi, j * math.pi
+    sign_lo = np.sign(np.sin(lo))
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        same = np.sign(beta * mid * np.cos(mid) + np.sin(mid)) == sign_lo
+        lo, hi = np.where(same, mid, lo), np.where(same, hi, mid)
+    return np.where(beta > 0.0, 0.5 * (lo + hi), j * math.pi)
 
 
 def build(cables: CableSet, elements_per_cable: int = 0) -> CableAssembly:
