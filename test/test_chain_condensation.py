@@ -1,8 +1,8 @@
 """Closed-form chain condensation (``fem``), real-arithmetic z cot z (``dsm``), the lean FRF.
 
-References: the O(n) recursion (the previous code), a dense Schur complement of the chain's
-K - lam M, exact rational arithmetic (fractions) of the recursion, the dense global solve of
-(K + i w C - w^2 M) (``naive_frf`` of cdpr_bench), and the complex cos/sin z cot z.
+References (test/oracles.py and below): the O(n) recursion, a dense Schur complement of the
+chain's K - lam M, exact rational arithmetic (fractions) of the recursion, the dense global solve
+of (K + i w C - w^2 M), and the complex cos/sin z cot z.
 
 Tolerance 1e-10 relative, except near a pole or zero of the end stiffness: rounding d11 and
 d12 perturbs a chain like a relative change of lam by ~n^2 eps (the chain's conditioning), and
@@ -11,7 +11,6 @@ recursion and dense solve alike, measured within 2x of each other) is only good 
 n^2 eps lam/|lam - lam_j|: the bound asserted there is 1e-10 + 4 n^2 eps lam/|lam - lam_j|
 (measured 1.7e-6 at n = 256, 1e-6 from a pole, against a bound of 5.8e-5).
 """
-import cmath
 import dataclasses
 from fractions import Fraction
 from pathlib import Path
@@ -21,12 +20,12 @@ import pytest
 
 from cdpr_dynamics import models
 from cdpr_dynamics.analysis.pipeline import build_system, equilibrium
-from cdpr_dynamics.cli.bench import naive_frf
 from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.dynamics.system import Damping, frequency_response, platform_system
 from cdpr_dynamics.models.dsm import z_cot_z
-from cdpr_dynamics.models.fem import chain_end_stiffness, chain_end_stiffness_recursive
+from cdpr_dynamics.models.fem import chain_end_stiffness
 from cdpr_dynamics.dynamics.modes import natural_frequencies
+from oracles import chain_end_stiffness_recursive, fem_recursive, naive_frf, z_cot_z_complex
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'paper_cdpr.yaml'
 NS = (1, 2, 3, 16, 64, 256)
@@ -200,22 +199,6 @@ def test_broadcast_over_cables_and_real_equals_complex():
 # --------------------------------------------------------------------------- dsm: z cot z
 
 
-def z_cot_z_complex(z2):
-    """The former formula: complex sqrt, z cos z / sin z (exp(2iz) for |Im z| > 30)."""
-    out = []
-    for value in np.ravel(z2).astype(complex):
-        z = cmath.sqrt(value)
-        z = -z if z.imag < 0 else z
-        if abs(z) < 1e-3:
-            out.append(1.0 - value / 3.0 - value * value / 45.0 - 2.0 * value ** 3 / 945.0)
-        elif z.imag > 30.0:
-            q = cmath.exp(2j * z)
-            out.append(z * 1j * (1.0 + q) / (q - 1.0))
-        else:
-            out.append(z * cmath.cos(z) / cmath.sin(z))
-    return np.array(out)
-
-
 def test_z_cot_z_matches_the_complex_formula():
     """Real z^2 (undamped: z/tan z and y coth y) and complex z^2 (damped) on every branch:
     measured 3e-15 (the complex formula itself carries a few eps)."""
@@ -280,13 +263,13 @@ def test_fem_frf_matches_the_dense_global_solve(paper, n):
 
 
 def test_fem_frf_matches_the_recursion_path(paper):
-    """The closed form with the shortcuts against the previous path (recursion, 3x3 blocks)."""
+    """The closed form with the shortcuts against the recursion through 3x3 blocks."""
     settings, eq = paper
     f = settings.frequencies_hz
     for n in (16, 256):
         fast = build_system(settings, eq, 'fem', n)
         slow = platform_system(settings.robot, eq.geometry,
-                               models.fem.build(eq.cables, n, reference=True))
+                               fem_recursive(eq.cables, n))
         a = frequency_response(fast, f, settings.frf_force_n, damping=Damping(0.05, 0.05))
         b = frequency_response(slow, f, settings.frf_force_n, damping=Damping(0.05, 0.05))
         np.testing.assert_allclose(a.response, b.response, rtol=1e-10,

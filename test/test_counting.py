@@ -14,7 +14,7 @@ The fast paths of counting, modes and dsm:
 * ``fem``'s closed-form clamped-chain modes against inverse iteration of the banded chain
   (``_ChainInterior`` on the same matrices), compared basis-free.
 * ``z_cot_z``'s series and root-sharing paths against extended precision, and the dsm FRF
-  against the former complex formula.
+  against the complex formula.
 * the batched generalized eigensolver of the classification against scipy.
 """
 from __future__ import annotations
@@ -33,6 +33,7 @@ from cdpr_dynamics.dynamics.modes import (MIN_MODES, _generalized_eigh, classify
                                           modes, natural_frequencies)
 from cdpr_dynamics.dynamics.system import Damping, frequency_response
 from cdpr_dynamics.models import dsm
+from oracles import z_cot_z_complex
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = load_settings(REPO / 'config' / 'paper_cdpr.yaml')
@@ -374,17 +375,17 @@ def test_z_cot_z_agrees_with_extended_precision():
 
 
 @pytest.mark.parametrize('position', [None, OFF_CENTRE], ids=['centre', 'unequal'])
-def test_dsm_frf_equals_the_former_complex_formula(position):
+def test_dsm_frf_equals_the_complex_formula(position):
     eq = equilibrium(PAPER, position)
     system = build_system(PAPER, eq, 'dsm', 1)
-    members = dataclasses.replace(system.assembly.end_stiffness, wave=dsm.z_cot_z_reference)
-    former = dataclasses.replace(system, assembly=dataclasses.replace(
+    members = dataclasses.replace(system.assembly.end_stiffness, wave=z_cot_z_complex)
+    complex_ = dataclasses.replace(system, assembly=dataclasses.replace(
         system.assembly, end_stiffness=members,
         decoupled=system.assembly.decoupled._replace(stiffness=members.parts)))
     f = np.asarray(PAPER.frequencies_hz, dtype=float)
     for damping in (damping_for(PAPER, system), Damping(0.0, 0.0)):
         a = frequency_response(system, f, PAPER.frf_force_n, damping=damping)
-        b = frequency_response(former, f, PAPER.frf_force_n, damping=damping)
+        b = frequency_response(complex_, f, PAPER.frf_force_n, damping=damping)
         np.testing.assert_array_equal(a.singular, b.singular)
         fin = ~a.singular
         scale = np.abs(b.response[fin]).max(axis=1, keepdims=True)

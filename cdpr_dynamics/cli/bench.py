@@ -3,8 +3,7 @@
     cdpr_bench [--config PATH] [--quick] [--dds] [--json PATH]
     cdpr_bench --workspace [--config PATH] [--quick] [--json PATH]
 
-Stages: tension QP (cold, warm), model build per method and size, a 391-point FRF against a
-naive dense solve of (K + i w C - w^2 M) per frequency measured in the same run, a 1000-step
+Stages: tension QP (cold, warm), model build per method and size, a 391-point FRF, a 1000-step
 Newmark time history, an underactuated robot's statics (at an equilibrium, and the
 geometrico-static solve), and the node's own work (pose update: tensions + model + factorisation;
 one wrench: message check, feasibility, Newmark step, prediction message), cdpr_replay offline
@@ -17,7 +16,6 @@ not meant to be read).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import json
 import sys
@@ -27,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from cdpr_dynamics.analysis.pipeline import (AnalysisError, build_system, damping_for, equilibrium,
-                                             equilibrium_for, new_tension_solver)
+                                             new_tension_solver)
 from cdpr_dynamics.cli import bench_node, interruptible, plain
 from cdpr_dynamics.analysis.config import ConfigError, Settings, default_config_path, load_settings
 from cdpr_dynamics.dynamics.system import DynamicsError, frequency_response, time_history
@@ -71,19 +69,6 @@ def bench_qp(settings: Settings, repeat: int) -> dict:
     return {'warm': timed(warm, 20 * repeat), 'cold': timed(cold, 2 * repeat)}
 
 
-def naive_frf(system, frequency_hz, force_n, damping) -> np.ndarray:
-    """Dense (K + i w C - w^2 M)^-1 F per frequency: the reference the condensation beats."""
-    k, m = (a.toarray() for a in system.matrices())
-    c = damping.mass_factor * m + damping.stiffness_factor * k
-    load = np.zeros(k.shape[0], dtype=complex)
-    load[:3] = force_n
-    out = np.empty((len(frequency_hz), 3), dtype=complex)
-    for i, f in enumerate(frequency_hz):
-        w = 2 * np.pi * f
-        out[i] = np.linalg.solve(k + 1j * w * c - w * w * m, load)[:3]
-    return out
-
-
 def settle_heap() -> None:
     """Put the allocator where a long-running process is: glibc raises its mmap and trim
     thresholds the first time a large block (here 8 MB) is freed, after which arrays of ~100 kB
@@ -94,49 +79,8 @@ def settle_heap() -> None:
     del block
 
 
-def previous_system(settings: Settings, eq, system):
-    """``system`` as the FRF code before the closed forms saw it: ``fem`` by the chain
-    recursion, ``dsm`` by the complex z cot z, ``fem_sag`` by the 3x3 flexibility recursion,
-    every model through 3x3 end-stiffness blocks and the congruence (no shortcuts)."""
-    from cdpr_dynamics.dynamics.system import platform_system
-    from cdpr_dynamics.models import dsm, fem, fem_sag
-
-    assembly = system.assembly
-    if assembly.method == 'fem':
-        assembly = fem.build(eq.cables, assembly.elements_per_cable, reference=True)
-    elif assembly.method == 'dsm':
-        members = dataclasses.replace(assembly.end_stiffness, wave=dsm.z_cot_z_reference)
-        assembly = dataclasses.replace(assembly, end_stiffness=members)
-    elif assembly.method == 'fem_sag':
-        cables = equilibrium_for(settings, eq, 'fem_sag').cables
-        elements = fem_sag.sag_chains(cables, assembly.elements_per_cable)[1]
-        assembly = dataclasses.replace(assembly, end_stiffness=lambda lam: fem_sag._series_3d(
-            *elements, np.asarray(lam)).astype(complex))
-    assembly = dataclasses.replace(assembly, decoupled=None, constant_stiffness=None)
-    return platform_system(settings.robot, system.geometry, assembly)
-
-
-def previous_frequency_response(system, frequency_hz, force_n, damping) -> np.ndarray:
-    """The FRF algorithm before the closed forms: an SVD per frequency for the singular test
-    against the static stiffness recomputed on every call, then a batched LAPACK solve."""
-    f = np.asarray(frequency_hz, dtype=float)
-    z = system.dynamic_stiffness(2.0 * np.pi * f, damping)
-    load = np.zeros(system.platform_dofs)
-    load[:3] = force_n
-    sigma = np.linalg.svd(z, compute_uv=False)
-    scale = np.maximum(sigma[:, 0], np.abs(system.dynamic_stiffness(np.zeros(1))[0].real).max()
-                       + (2 * np.pi * f) ** 2 * np.abs(system.platform_mass).max())
-    ok = sigma[:, -1] > 1e-12 * scale
-    response = np.full((f.size, system.platform_dofs), np.inf + 0j)
-    response[ok] = np.linalg.solve(z[ok], np.broadcast_to(load, (ok.sum(), load.size))
-                                   [..., None])[..., 0]
-    return response
-
-
 def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
-    """Per method and size: build, the 391-point FRF, a Newmark time history; for the FRF the
-    previous code (:func:`previous_system`, :func:`previous_frequency_response`) and, for fem
-    16 and 64, the naive dense solve, each in the same run with the largest difference."""
+    """Per method and size: build, the 391-point FRF and a Newmark time history."""
     settle_heap()
     eq = equilibrium(settings)
     freqs = settings.frequencies_hz
@@ -158,29 +102,12 @@ def bench_models(settings: Settings, repeat: int, quick: bool) -> list[dict]:
                'build': timed(lambda: build_system(settings, eq, method, n), repeat),
                'frf_391': timed(lambda: frequency_response(system, freqs, settings.frf_force_n,
                                                            damping=damping), repeat)}
-        fast = frequency_response(system, freqs, settings.frf_force_n,
-                                  damping=damping).response[:, :3]
-        old = previous_system(settings, eq, system)
-        row['previous_frf_391'] = timed(lambda: previous_frequency_response(
-            old, freqs, settings.frf_force_n, damping), max(3, repeat // 3))
-        row['previous_over_new'] = row['previous_frf_391']['p50_s'] / row['frf_391']['p50_s']
-        before = previous_frequency_response(old, freqs, settings.frf_force_n, damping)[:, :3]
-        row['previous_max_relative_difference'] = float(
-            np.abs(before - fast).max() / np.abs(before).max())
         if system.assembly.blocks is not None:
             steps = 100 if quick else 1000
             row[f'time_history_{steps}_steps'] = timed(
                 lambda: time_history(system, settings.frf_force_n, 5.0, steps * settings.dt_s,
                                      damping, settings.dt_s, settings.newmark_alpha,
                                      settings.newmark_beta), max(1, repeat // 10))
-            if method == 'fem' and n in ((16,) if quick else (16, 64)):
-                start = time.perf_counter()
-                naive = naive_frf(system, freqs, settings.frf_force_n, damping)
-                row['naive_dense_frf_391_s'] = time.perf_counter() - start
-                row['naive_over_condensed'] = (row['naive_dense_frf_391_s']
-                                               / row['frf_391']['p50_s'])
-                row['naive_max_relative_difference'] = float(
-                    np.abs(naive - fast).max() / np.abs(naive).max())
         rows.append(row)
     return rows
 
@@ -213,7 +140,7 @@ def bench_frf_sizes(settings: Settings, repeat: int, sizes=(16, 64, 256)) -> dic
 def bench_modes(settings: Settings, repeat: int, quick: bool) -> list[dict]:
     """Every mode below ``frf.f_max_hz`` (at least 12), classified: by Wittrick-Williams
     counting (:func:`cdpr_dynamics.dynamics.modes.modes`, the default) against the dense / Lanczos
-    eigensolver with mode shapes (``shapes=True``, the previous code), in the same run."""
+    eigensolver with mode shapes (``shapes=True``), in the same run."""
     from cdpr_dynamics.dynamics.modes import modes
     eq = equilibrium(settings)
     rows = []
@@ -343,10 +270,6 @@ def summary(result: dict) -> str:
                 f"{row['frf_391']['p50_s'] * ms:7.3f} ms")
         if th:
             text += f"  time history {th['p50_s'] * ms:8.1f} ms"
-        if 'previous_over_new' in row:
-            text += f"  (previous code x{row['previous_over_new']:.1f}"
-            text += (f", naive dense x{row['naive_over_condensed']:.0f})"
-                     if 'naive_over_condensed' in row else ')')
         lines.append(text)
     sizes = result['frf_sizes']
     lines.append('fem FRF391 interleaved n=' + '/'.join(str(n) for n in sizes['p50_s'])

@@ -182,26 +182,6 @@ def _series_terms(bound: float) -> int:
     return int(min(len(_SERIES), max(1, math.ceil(math.log(2.3e-16 / 3.3) / math.log(ratio)))))
 
 
-def z_cot_z_reference(z2) -> np.ndarray:
-    """The former complex formula of :func:`z_cot_z` (complex sqrt, cos, sin): the reference
-    ``cdpr_bench`` times the real-arithmetic one against."""
-    z2 = np.asarray(z2, dtype=complex)
-    z = np.sqrt(z2)
-    z = np.where(z.imag < 0.0, -z, z)        # z cot z is even: take Im z >= 0
-    out = np.empty_like(z)
-    small = np.abs(z) < 1e-3
-    large = ~small & (z.imag > _LARGE_IMAG)
-    mid = ~small & ~large
-    out[small] = _series(z2[small])
-    zm = z[mid]
-    with np.errstate(divide='ignore', invalid='ignore'):
-        out[mid] = zm * np.cos(zm) / np.sin(zm)
-    zl = z[large]
-    q = np.exp(2j * zl)
-    out[large] = zl * 1j * (1.0 + q) / (q - 1.0)
-    return out
-
-
 def _taut_waves(lam: np.ndarray, ratio: np.ndarray) -> np.ndarray:
     """:func:`z_cot_z` of z^2 = lam ratio for complex ``lam`` (nl,) and ``ratio`` > 0 (...):
     (..., nl). Rows whose largest |z^2| is within :data:`_SERIES_BELOW` (the axial waves) are

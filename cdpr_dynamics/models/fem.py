@@ -20,7 +20,7 @@ eliminating the nodes one by one from the anchor (Schur complement of a tridiago
     S_1 = d11,   S_k = d11 - d12^2 / (S_{k-1} + d11),
     d11 = k - lam 2 mu l / 6,   d12 = -k - lam mu l / 6,
 
-(:func:`chain_end_stiffness_recursive`, O(n) per frequency). The recursion is a linear
+(O(n) per frequency). The recursion is a linear
 recurrence with constant coefficients, so it has a closed form (:func:`chain_end_stiffness`):
 with r = cos(theta) = -d11/d12,
 
@@ -69,28 +69,6 @@ def anchor_chain_end_stiffness(end: np.ndarray, k_element, m_element, delta,
     return (end - 3.0 * c * (2.0 * k - c) * g) / (end * g + 1.0)
 
 
-def chain_end_stiffness_recursive(k_element: np.ndarray, m_element: np.ndarray, n: int,
-                                  lam: np.ndarray) -> np.ndarray:
-    """End dynamic stiffness of uniform scalar chains by the O(n) recursion (module doc).
-
-    The reference :func:`chain_end_stiffness` is tested against and ``cdpr_bench`` times it
-    against. ``k_element`` and ``m_element`` (element stiffness and mass mu l) broadcast over
-    the cables, ``lam`` (nl,) complex: result (nl, ...) complex.
-    """
-    lam = np.asarray(lam, dtype=complex).reshape((-1,) + (1,) * np.ndim(k_element))
-    d11 = k_element - lam * (2.0 * m_element / 6.0)
-    d12 = -k_element - lam * (m_element / 6.0)
-    s = d11
-    for _ in range(n - 1):
-        denominator = s + d11
-        # 0/0: a chain of zero stiffness and mass (T = 0 transversely, at lam = 0) stays zero;
-        # x/0: an exact pole of the chain
-        at_pole = denominator == 0
-        s = np.where(at_pole, np.where(d12 == 0, 0.0, np.inf),
-                     d11 - d12 * d12 / np.where(at_pole, 1.0, denominator))
-    return s
-
-
 def chain_end_stiffness(k_element: np.ndarray, m_element: np.ndarray, n: int,
                         lam: np.ndarray) -> np.ndarray:
     """End dynamic stiffness S_n of uniform scalar chains of n elements fixed at the far end.
@@ -98,7 +76,7 @@ def chain_end_stiffness(k_element: np.ndarray, m_element: np.ndarray, n: int,
     Closed form -d12 T_n(r)/U_{n-1}(r) (module doc), cost independent of n. ``k_element``
     (N/m) and ``m_element`` (element mass mu l, kg) broadcast over the cables, ``lam`` (nl,)
     (1/s^2): result (nl, ...), real for real ``lam``, complex for complex ``lam``. Agrees with
-    :func:`chain_end_stiffness_recursive`, inf at an exact pole, 0 where k = 0 at lam = 0.
+    the recursion, inf at an exact pole, 0 where k = 0 at lam = 0.
     """
     k = np.asarray(k_element, dtype=float)
     m = np.asarray(m_element, dtype=float)
@@ -179,13 +157,8 @@ def uniform_chain_blocks(unit, k_axial, k_transverse, m_element, n) -> ChainBloc
     return ChainBlocks(k_diag, k_off, m_diag, m_off)
 
 
-def build(cables: CableSet, elements_per_cable: int = 16,
-          reference: bool = False) -> CableAssembly:
-    """The paper's FEM with ``elements_per_cable`` elements per cable.
-
-    ``reference``: the end stiffness by :func:`chain_end_stiffness_recursive` and no
-    axial/transverse shortcut (the previous code path, for tests and ``cdpr_bench``).
-    """
+def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
+    """The paper's FEM with ``elements_per_cable`` elements per cable."""
     n = int(elements_per_cable)
     if n < 1:
         raise ValueError('fem needs at least one element per cable')
@@ -200,14 +173,6 @@ def build(cables: CableSet, elements_per_cable: int = 16,
     if cables.anchor_end is not None:
         return _with_anchor_end(cables, n, unit, k_axial, k_transverse, m_element, blocks,
                                 warnings)
-    if reference:
-        def end_stiffness(lam):
-            axial = chain_end_stiffness_recursive(k_axial, m_element, n, lam)
-            transverse = chain_end_stiffness_recursive(k_transverse, m_element, n, lam)
-            return axial_transverse(unit, axial, transverse)
-
-        return CableAssembly('fem', n, end_stiffness, cables.tension_n[:, None] * unit, blocks,
-                             valid=not warnings, warnings=warnings)
     k_both = np.empty((2,) + k_transverse.shape)          # (2, n): axial, transverse
     k_both[0], k_both[1] = k_axial, k_transverse
     m_both = np.empty_like(k_both)
