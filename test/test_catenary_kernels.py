@@ -196,6 +196,7 @@ def solved_verdict(cables):
     return catenary.solve(cables, tolerance=catenary.EXISTENCE_TOLERANCE).valid
 
 
+@pytest.mark.slow
 def test_explicit_existence_is_the_solves_verdict():
     """Where T >= 2 gamma L and L >= 0.1 m the solve finds every catenary (so the explicit test
     may skip it); elsewhere exists() is the solve's verdict, found or not."""

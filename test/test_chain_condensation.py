@@ -104,6 +104,7 @@ def test_closed_form_matches_recursion_and_dense_solve(n, damped, k):
     np.testing.assert_allclose(closed, dense, rtol=1e-10, atol=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('n', (1, 2, 3, 16, 64))
 def test_closed_form_matches_exact_rational_arithmetic(n):
     """Against the recursion without any rounding (fractions): measured 6.7e-13 at n = 64."""

@@ -45,6 +45,7 @@ def test_unknown_parameter_and_unparsable_file(tmp_path):
         read_params_file(bad)
 
 
+@pytest.mark.slow
 def test_analyze_json_contract_and_plots(tmp_path):
     out = analyze('--method', 'fem', 'spring', '--elements', '4', '--json', tmp_path / 'a.json',
                   '--plot-dir', tmp_path / 'plots', '--excitation-hz', '5', '10',
@@ -99,6 +100,7 @@ def test_analyze_without_ament_prefix_path_finds_the_paper_config(tmp_path):
     assert json.loads((tmp_path / 'a.json').read_text())['dofs'] == 3
 
 
+@pytest.mark.slow
 def test_sag_parameter_reported_and_straight_models_warned_on_slack_ish_cables(tmp_path):
     """Low tensions make lambda^2 large: straight models get a sag warning, catenary not."""
     config = write_config(tmp_path, **{'tension.min_n': 10.0, 'model.tolerance': 0.01})
@@ -127,6 +129,7 @@ def test_analyze_checks_command_line_overrides_like_the_config(args, message):
     assert len(lines) == 1 and message in lines[0], out.stderr
 
 
+@pytest.mark.slow
 def test_shaper_command_prints_what_the_node_publishes(tmp_path):
     """cdpr_analyze --shaper at a pose: the JSON's controller block is the library's (the
     shaper of the lowest platform modes, its notches, the modes table, the length offsets),

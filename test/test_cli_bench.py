@@ -7,6 +7,7 @@ import pytest
 from conftest import installed
 
 
+@pytest.mark.slow
 def test_bench_quick_reports_every_stage(tmp_path):
     out = subprocess.run([installed('cdpr_bench'), '--quick', '--json', str(tmp_path / 'b.json')],
                          capture_output=True, text=True, timeout=600)

@@ -142,6 +142,7 @@ def test_the_frf_along_the_load_is_the_projection_of_the_complex_response():
     assert demo_results.along(frf, d) == pytest.approx(abs(0.6 * 3 + 0.8 * 4j))
 
 
+@pytest.mark.slow
 def test_slack_comparison_and_the_taut_amplitude():
     """The demo's own run of the node's predictor: the paper's 1500 N at 5 Hz on the circle
     slackens cables (the slack-aware peak above the linear one); at the amplitude it advises no

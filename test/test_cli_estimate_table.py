@@ -29,6 +29,7 @@ def table():
             for p in estimate_table.ROBOTS}
 
 
+@pytest.mark.slow
 def test_every_measured_error_is_within_safety_times_its_estimate(table):
     entries = [e for rows in table.values() for e in rows]
     assert len(entries) == len(estimate_table.ROBOTS) * len(estimate_table.MODELS)
@@ -54,6 +55,7 @@ def test_the_estimates_are_not_capped(table):
         == 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('path', estimate_table.ROBOTS)
 def test_auto_within_the_default_budget(table, path):
     """auto's pick (model.tolerance 1 %, model.max_dofs 600) measures within the tolerance

@@ -34,6 +34,7 @@ def run_cli(*args, env=None):
                           env={**os.environ, 'OMP_NUM_THREADS': '1', **(env or {})})
 
 
+@pytest.mark.slow
 def test_reference_and_auto_pick(paper_40):
     settings, reference, choice, rows = paper_40
     assert reference.method == 'fem_sag' and 'n=128/256 Richardson' in reference.label
@@ -72,6 +73,7 @@ def test_pareto_front():
     assert tradeoff.pareto(times, errors).tolist() == [4, 0, 1, 3]
 
 
+@pytest.mark.slow
 def test_cli_writes_csv_and_chart(tmp_path):
     out = run_cli('--config', CONFIG, '--f-max', 10, '--tolerance', 0.01, '--repeat', 1,
                   '--csv', tmp_path / 't.csv', '--plot', tmp_path / 'sub' / 't.png')
@@ -93,6 +95,7 @@ def test_cli_writes_csv_and_chart(tmp_path):
     (['--repeat', '0'], '--repeat must be at least 1'),
     (['--f-max', '-3'], 'frf.f_max_hz = -3.0 is outside'),
 ])
+@pytest.mark.slow
 def test_errors_are_one_line_with_nonzero_status(tmp_path, args, message):
     out = run_cli(*args, '--csv', tmp_path / 't.csv', '--plot', tmp_path / 't.png')
     assert out.returncode == 1

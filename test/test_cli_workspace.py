@@ -240,6 +240,7 @@ def test_an_unexpected_failure_is_a_row_too(monkeypatch):
     assert row['tensions_n'] and np.isfinite(row['tension_margin_n'])
 
 
+@pytest.mark.slow
 def test_vary_multiplies_the_grid_with_a_column_per_name(tmp_path):
     out = tmp_path / 'vary'
     done = workspace('--x', '0', '0.5', '2', '--y', '0', '0', '1', '--z', '1.25', '1.25', '1',
@@ -297,6 +298,7 @@ def test_bad_arguments_end_with_one_line(tmp_path, args, words):
     assert 'Traceback' not in done.stderr
 
 
+@pytest.mark.slow
 def test_poses_file_and_a_second_run_into_the_same_folder(tmp_path):
     csv = tmp_path / 'poses.csv'
     csv.write_text('x_m,y_m,z_m\n0,0,1.25\n0.4,0.1,0.9\n')
@@ -314,6 +316,7 @@ def test_poses_file_and_a_second_run_into_the_same_folder(tmp_path):
 
 # --------------------------------------------------------------------------- the engine
 
+@pytest.mark.slow
 def test_local_cluster_of_two_processes_equals_serial(tmp_path, serial):
     out = tmp_path / 'cluster'
     done = workspace(*GRID, '--output', out, '--workers', '2')
@@ -363,6 +366,7 @@ def test_existing_cluster_with_a_worker_killed_mid_run(tmp_path, processes, slow
     assert '27 poses: ' in stdout
 
 
+@pytest.mark.slow
 def test_a_result_lost_with_its_worker_is_computed_again_not_failed(tmp_path):
     """The race the killed-worker test met in CI: a chunk finished on a worker that then
     died before its result was fetched. Its future is 'lost' (neither finished nor failed);
@@ -440,6 +444,7 @@ def _flaky(log: str, task):
     return compute_chunk(task)
 
 
+@pytest.mark.slow
 def test_a_task_that_keeps_failing_is_retried_then_its_poses_fail(tmp_path):
     import cloudpickle
     cloudpickle.register_pickle_by_value(sys.modules[__name__])

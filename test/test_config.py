@@ -366,6 +366,7 @@ def test_hostile_files_in_the_node_and_cdpr_analyze(ros_env, tmp_path):
     print('seconds to the answer (cdpr_analyze, dynamics_node, side by side):', timings)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('tool', ['cdpr_tradeoff', 'cdpr_bench', 'cdpr_demo'])
 def test_hostile_file_in_the_other_tools(tmp_path, tool):
     bomb = write(tmp_path, billion_laughs())

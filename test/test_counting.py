@@ -98,6 +98,7 @@ def test_counted_modes_equal_the_dense_eigensolver(settings, position, method, n
     assert_equal_dense(settings, system, modes(system, settings.f_max_hz))
 
 
+@pytest.mark.slow
 def test_chains_equal_up_to_round_off_are_one_repeated_frequency(monkeypatch):
     """fem_sag n = 64 at the chord statics (cdpr_bench's state): the pivots give the four
     upper cables' equal clamped eigenvalues up to 7e-10 Hz apart, in two brackets, one cable's

@@ -143,6 +143,7 @@ ROBOTS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('name', list(ROBOTS))
 def test_wrench_set_never_rejects_what_an_lp_finds_feasible(name):
     """Issue 9: the node rejected a wrench an LP (HiGHS) shows feasible. Over random wrenches,

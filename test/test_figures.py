@@ -46,6 +46,7 @@ def lines(ax, gid):
     return [line for line in ax.get_lines() if line.get_gid() == gid]
 
 
+@pytest.mark.slow
 def test_frf_is_amplitude_per_newton_with_the_jsons_platform_modes_marked(paper_docs, tmp_path):
     force_n = load_settings().frf_force_n                       # the config's 1500 N along z
     fig = figures.frf_figure(paper_docs, tmp_path / 'frf.png', 'z')
@@ -104,6 +105,7 @@ def png_size(path):
     return struct.unpack('>II', data[16:24])
 
 
+@pytest.mark.slow
 def test_cli_writes_the_four_figures_and_the_json_additions(tmp_path):
     out = analyze('--config', RIGID, '--method', 'fem', '--elements', '4', '--duration', '0.2',
                   '--plot-direction', 'ry', '--json', tmp_path / 'a.json',
@@ -161,6 +163,7 @@ def test_geometry_cables_end_at_anchor_and_attachment_coloured_by_tension(
     assert ax.get_zlabel() == 'z (m)' and png_size(tmp_path / 'g.png')[0] > 700
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('config,n', [(None, 4), (RIGID, 4), (None, 1)])
 def test_mode_panels_draw_the_mode_shape_times_the_scale(config, n, tmp_path):
     settings = load_settings(config)
@@ -253,6 +256,7 @@ def test_time_history_shades_the_slack_spans_under_load_and_lowest_tension(paper
     assert png_size(tmp_path / 'th.png')[1] > 500
 
 
+@pytest.mark.slow
 def test_tradeoff_labels_do_not_overlap_and_the_legend_names_the_families(tmp_path):
     from cdpr_dynamics.cli import tradeoff
     rows = [{'method': m, 'elements_per_cable': n, 'time_s': t * 1e-3, 'freq_error_pct': f,

@@ -97,6 +97,7 @@ def check_modes(modes, f_true, zeta_true, phi=None, count=5):
             assert mac(mode.direction, phi[:, j]) > 0.9
 
 
+@pytest.mark.slow
 def test_free_decay_in_mcap_identified(tmp_path, capsys):
     settings = soft_robot()
     position = np.array([0.1, -0.05, 1.3])
@@ -116,6 +117,7 @@ def test_free_decay_in_mcap_identified(tmp_path, capsys):
     check_modes(stretch.modes, f, zeta, phi)
 
 
+@pytest.mark.slow
 def test_messy_record_motion_gaps_and_large_oscillation():
     """Starts mid-motion, drops 3 % of its samples and 0.4 s at once, moves to a second pose;
     the first decay starts larger than --max-amplitude."""
@@ -182,6 +184,7 @@ def test_identify_errors_are_one_line(tmp_path, capsys, args, message):
     assert code == 1 and message in err and len(err.strip().splitlines()) == 1, err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('seed', [0, 1, 2])
 def test_a_noisy_decay_gives_right_modes_or_none(seed):
     """1 mm and 1 mrad of noise on a decay of a few mm: what is reported is right (within
@@ -201,6 +204,7 @@ def test_a_noisy_decay_gives_right_modes_or_none(seed):
         assert abs(mode.damping_ratio / zeta[j] - 1) < 0.2
 
 
+@pytest.mark.slow
 def test_taps_at_one_pose_are_separate_decays():
     """Quiet at the pose for 4 s, a tap (the decay from U0), a second, larger tap 9 s later:
     two decays, each starting at its tap, the quiet time before the first said so."""

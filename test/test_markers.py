@@ -211,6 +211,7 @@ def _npm_install(target: Path) -> str:
     return ''
 
 
+@pytest.mark.slow
 def test_recording_decodes_in_foxglove(recording, tmp_path_factory):
     recording, _ = recording
     modules = tmp_path_factory.mktemp('foxglove_npm')

@@ -8,6 +8,8 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 #: import name -> rosdep key declared in package.xml
@@ -73,6 +75,7 @@ def test_package_xml_is_format_3_ament_python():
     assert root.find('export/build_type').text == 'ament_python'
 
 
+@pytest.mark.slow
 def test_every_imported_module_is_declared():
     root = package_xml()
     run = {e.text for e in root.findall('exec_depend')} | {e.text for e in root.findall('depend')}

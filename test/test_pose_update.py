@@ -153,6 +153,7 @@ def test_warm_active_set_at_both_bounds_is_proxsuites_answer(config, force_n, up
     assert counts['by_active_set'] >= 0.8 * (200 - counts['infeasible'])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('bad', ['inf wt', '-inf wt', 'nan wt', 'inf w', 'nan w', 'huge w',
                                  'huge wt'])
 def test_warm_active_set_is_silent_and_right_on_non_finite_input(bad):

@@ -143,6 +143,12 @@ def platform_wrench(settings, eq, q):
                            np.cross(moved.lever_m, force).sum(axis=0) + np.cross(com, weight)])
 
 
+def balance_jacobian(s, eq, h=1e-6):
+    """Minus the central-difference Jacobian of the platform wrench (6, 6): the stiffness."""
+    return -np.array([(platform_wrench(s, eq, h * e) - platform_wrench(s, eq, -h * e)) / (2 * h)
+                      for e in np.eye(6)]).T
+
+
 @pytest.mark.parametrize('com', [[0.0, 0.0, 0.0], [0.04, -0.03, -0.12]])
 def test_stiffness_is_the_derivative_of_the_static_balance(com):
     """Pulleys, winch side and an offset centre of mass: the spring model's platform
@@ -152,11 +158,8 @@ def test_stiffness_is_the_derivative_of_the_static_balance(com):
     eq = pipeline.equilibrium(s)
     assert np.abs(platform_wrench(s, eq, np.zeros(6))).max() < 1e-8
     k = pipeline.build_system(s, eq, 'spring').static_stiffness()
-    h = 1e-6
-    jac = np.array([(platform_wrench(s, eq, h * e) - platform_wrench(s, eq, -h * e)) / (2 * h)
-                    for e in np.eye(6)]).T
     scale = np.abs(k).max(axis=0)
-    assert np.all(np.abs(-jac - k).max(axis=0) < 1e-7 * scale)
+    assert np.all(np.abs(balance_jacobian(s, eq) - k).max(axis=0) < 1e-7 * scale)
     fem = pipeline.build_system(s, eq, 'fem', 6).static_stiffness()
     assert_allclose(fem, k, rtol=0, atol=1e-12 * np.abs(k).max())
 
@@ -402,10 +405,7 @@ def test_suspended_underactuated_robot_with_pulleys():
     assert eq.geometry.pulleys is not None
     assert np.abs(platform_wrench(s, eq, np.zeros(6))).max() < 1e-8
     k = pipeline.build_system(s, eq, 'spring').static_stiffness()
-    h = 1e-6
-    jac = np.array([(platform_wrench(s, eq, h * e) - platform_wrench(s, eq, -h * e)) / (2 * h)
-                    for e in np.eye(6)]).T
-    assert np.all(np.abs(-jac - k).max(axis=0) < 1e-6 * np.abs(k).max(axis=0))
+    assert np.all(np.abs(balance_jacobian(s, eq) - k).max(axis=0) < 1e-6 * np.abs(k).max(axis=0))
     loaded = loaded_stiffness(s.robot, eq.geometry, eq.tensions.tension_n, s.cable.ea_n)
     assert_allclose(loaded, k, rtol=0, atol=1e-9 * np.abs(k).max())
     assert np.all(np.linalg.eigvalsh(k) > 0)
@@ -437,8 +437,5 @@ def test_pulleys_on_the_suspended_configs(name):
     eq = pipeline.equilibrium(s)
     assert np.abs(platform_wrench(s, eq, np.zeros(6))).max() < 1e-8
     k = pipeline.build_system(s, eq, 'spring').static_stiffness()
-    h = 1e-6
-    jac = np.array([(platform_wrench(s, eq, h * e) - platform_wrench(s, eq, -h * e)) / (2 * h)
-                    for e in np.eye(6)]).T
-    assert np.all(np.abs(-jac - k).max(axis=0) < 1e-6 * np.abs(k).max(axis=0))
+    assert np.all(np.abs(balance_jacobian(s, eq) - k).max(axis=0) < 1e-6 * np.abs(k).max(axis=0))
     assert np.all(np.linalg.eigvalsh(k) > 0)

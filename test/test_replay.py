@@ -1017,6 +1017,7 @@ def test_replay_through_the_node_matches_golden(name, procs, output_dir):
 # ----------------------------------------------------------------------------- slack
 
 
+@pytest.mark.slow
 def test_slack_aware_replay_gives_the_analyze_numbers(tmp_path):
     """The paper's 1500 N at 5 Hz as a 1 kHz wrench stream (the wrench stamped t_k carries the
     load at t_k + dt, as cdpr_analyze's history steps): cdpr_replay's predictions are
@@ -1058,6 +1059,7 @@ def test_slack_aware_replay_gives_the_analyze_numbers(tmp_path):
     assert np.abs(replayed - linear.u[:, :3]).max() > 0.1 * peak
 
 
+@pytest.mark.slow
 def test_a_replay_that_lacks_the_pose_before_a_wrench_says_so(tmp_path):
     """A recording that missed the pose the live node had (published before the recorder
     subscribed) replays at robot.initial_position: the replay warns, naming the pose topic,

@@ -163,6 +163,7 @@ def test_sag_parameters_of_the_robots():
 
 # --------------------------------------------------------------------------- the yardstick
 
+@pytest.mark.slow
 def test_reference_is_fem_sag_where_sag_matters_and_dsm_where_it_does_not():
     settings, eq, ref = case('paper', 40.0)
     assert ref.method == 'fem_sag' and 'Richardson' in ref.label
@@ -175,6 +176,7 @@ def test_reference_is_fem_sag_where_sag_matters_and_dsm_where_it_does_not():
     assert reference_solution(light, equilibrium(light)).method == 'dsm'
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('robot, band', [('paper', 40.0), ('low_tension', 10.0),
                                          ('six_dof', 40.0), ('paper_light', 40.0)])
 def test_estimates_bound_the_real_errors(robot, band):
@@ -203,6 +205,7 @@ PAPER_PICKS = {(10.0, 0.1): ('spring', 1), (10.0, 0.01): ('catenary', 1),
                (100.0, 0.001): ('fem_sag', 137)}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('band, tolerance', sorted(PAPER_PICKS))
 def test_auto_on_the_paper_robot_meets_the_tolerance(band, tolerance):
     settings, eq, ref = case('paper', band)
@@ -214,6 +217,7 @@ def test_auto_on_the_paper_robot_meets_the_tolerance(band, tolerance):
     assert SAFETY * choice.estimated_error <= tolerance
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('robot, band', [('low_tension', 2.5), ('low_tension', 10.0),
                                          ('six_dof', 10.0), ('six_dof', 40.0),
                                          ('paper_light', 10.0), ('paper_light', 40.0)])
@@ -291,6 +295,7 @@ def test_auto_stays_within_the_budget_and_says_what_would_meet_the_tolerance():
     assert (at.method, at.elements_per_cable) == ('fem_sag', 44) and at.meets_tolerance
 
 
+@pytest.mark.slow
 def test_a_budget_of_massless_models_only_still_takes_the_most_accurate():
     """With room for no cable DOF at all, every candidate misses the cable modes: the most
     accurate is named with its (uncapped) estimate; below the platform's DOFs, a refusal."""
@@ -357,6 +362,7 @@ def test_estimator_damping_and_band_overrides():
     assert est.estimate('spring', 1).freq_error == 0.0
 
 
+@pytest.mark.slow
 def test_what_auto_says_reaches_the_json_and_the_node(tmp_path):
     """cdpr_analyze's JSON carries the uncapped estimate and the warning; the live predictor
     (what the node's diagnostics show) the same warning."""

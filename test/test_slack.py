@@ -160,6 +160,7 @@ def test_jacobians_are_the_derivatives_of_the_restoring_force(paper, rigid):
         assert_allclose(matrix, numeric, rtol=0, atol=1e-6 * np.abs(jq).max())
 
 
+@pytest.mark.slow
 def test_undamped_free_vibration_through_slack_keeps_its_energy(paper):
     settings, eq, system, _ = paper
     cables = CompressionFreeCables(system)
@@ -173,6 +174,7 @@ def test_undamped_free_vibration_through_slack_keeps_its_energy(paper):
     assert np.ptp(energy) <= 2e-3 * energy[0]
 
 
+@pytest.mark.slow
 def test_time_step_convergence(paper):
     """Second order through the slack kinks, like the linear Newmark: errors against dt/8 of
     the 1500 N, 5 Hz history (0.4 s) were 3.2e-4, 9.2e-5, 2.1e-5 at dt = 2, 1, 0.5 ms."""

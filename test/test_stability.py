@@ -87,6 +87,7 @@ def test_pendulum_robot_on_one_vertical_cable():
         assert natural_frequencies(system, 1)[0] == pytest.approx(pendulum, rel=0.02), method
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('tension', [10.0, 1.0, 0.3, 0.1, 0.01, 1e-6])
 def test_tension_to_zero_never_gives_nan(tension):
     """A 3 m cable (0.75 N of weight), 1 m drop: valid while a taut catenary exists."""
@@ -111,6 +112,7 @@ def test_cable_below_its_load_cannot_hold_its_weight():
         assert not assembly.valid and assembly.warnings and finite_stiffness(assembly), method
 
 
+@pytest.mark.slow
 def test_a_scene_without_a_catenary_at_tension_min(tmp_path):
     """Low-tension steel robot at tension.min_n = 0.05 N: no taut catenary spans the lower
     chords below ~5.7 N. The paper's catenary (L0 = chord at the chord tensions 0.05 N)
@@ -162,6 +164,7 @@ def test_fem_static_stiffness_is_finite_at_zero_tension():
     assert np.all(np.isfinite(models.build('fem', cables, 8).static_end_stiffness()))
 
 
+@pytest.mark.slow
 def test_too_few_elements_for_the_band_are_detected_and_warned(tmp_path):
     paper = load_settings(CONFIG)
     eq = equilibrium(paper)
@@ -180,6 +183,7 @@ def test_too_few_elements_for_the_band_are_detected_and_warned(tmp_path):
 
 # --------------------------------------------------------------------------- Newmark
 
+@pytest.mark.slow
 def test_newmark_beta_below_a_quarter_beyond_its_critical_step_is_refused(tmp_path):
     """beta = 0.1: stable for w_max dt <= 1/sqrt(alpha/2 - beta) = 2.58 only."""
     paper = load_settings(CONFIG)
@@ -232,6 +236,7 @@ def test_undamped_frf_exactly_at_a_resonance_is_flagged():
 
 # --------------------------------------------------------------------------- linear validity
 
+@pytest.mark.slow
 def test_linear_response_that_slackens_a_cable_is_flagged(tmp_path):
     out = analyze('--method', 'spring', '--slack-aware', '--duration', '0.3',
                   '--json', tmp_path / 'a.json')
@@ -254,6 +259,7 @@ def test_linear_response_that_slackens_a_cable_is_flagged(tmp_path):
         history['slack_aware']['peak_uz_linear_m'], rel=1e-4)
 
 
+@pytest.mark.slow
 def test_auto_reason_reaches_the_analyze_json(tmp_path):
     config = write_config(tmp_path, **{'model.method': 'auto', 'model.tolerance': 0.01})
     out = analyze('--config', config, '--json', tmp_path / 'a.json', '--duration', '0.01')

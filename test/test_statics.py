@@ -547,6 +547,7 @@ def box_in_box(tmp_path):
                                             'robot.initial_position': centre.tolist()})
 
 
+@pytest.mark.slow
 def test_rank_deficient_box_in_box_design_is_refused(tmp_path):
     path = box_in_box(tmp_path)
     settings = settings_from_params(read_params_file(path))
@@ -582,6 +583,7 @@ def segment_gap(p0, p1, q0, q1):
     return best
 
 
+@pytest.mark.slow
 def test_crossing_cables_are_refused_by_cdpr_analyze(tmp_path):
     """rigid_cdpr.yaml turned 45 degrees about z (the pose the node refuses in test_node_dds):
     one line naming two cables, which do come within the cable diameter of each other."""
@@ -654,6 +656,7 @@ def sag_sequence(settings, poses):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('case', sorted(SQP_CASES))
 def test_fast_sag_statics_equal_the_general_path(case, monkeypatch):
     name, t_min = SQP_CASES[case]
@@ -681,6 +684,7 @@ def test_fast_sag_statics_equal_the_general_path(case, monkeypatch):
     assert solved >= len(poses) // 2
 
 
+@pytest.mark.slow
 def test_lifted_sequences_exercise_the_probes_and_the_halvings(monkeypatch):
     """The lifted cases above go through lowest_tension's probes and halved SQP steps."""
     calls = {'lowest': 0, 'halved': 0}
@@ -705,6 +709,7 @@ def test_lifted_sequences_exercise_the_probes_and_the_halvings(monkeypatch):
     assert calls['halved'] > iterations           # more trial solves than accepted steps
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('seed', range(4))
 def test_solve_with_sensitivity_equals_solve_then_tension_sensitivity(seed):
     rng = np.random.default_rng(seed)

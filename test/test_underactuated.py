@@ -138,6 +138,7 @@ def _energy(robot, x):
     (_suspended_3(), [0.1, 0.05, 1.0], [0.0, 0.0, 0.0, 1.0]),
     (_suspended_3(), [0.2, -0.25, 0.8], [0.04, 0.02, -0.2, 1.0]),
 ])
+@pytest.mark.slow
 def test_geometrico_static_equilibrium_is_the_constrained_energy_minimum(
         robot, start, quaternion):
     """The solve keeps the pose's cable lengths, balances gravity with positive tensions, and
