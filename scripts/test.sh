@@ -7,7 +7,7 @@
 #                                                       # every core kept busy by a CPU burner;
 #                                                       # prints each failing test's count
 # Markers (pytest.ini): ros = starts nodes or DDS participants, sends signals or depends on
-# timing; slow = takes more than about ten seconds.
+# timing; slow = takes more than about a second.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 venv="$(pwd)/.venv"
