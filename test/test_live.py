@@ -1,5 +1,6 @@
 """LivePredictor, the node's ROS-free core: rebuilds, zero-order hold, auto caching."""
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,6 +10,8 @@ from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilib
 from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.dynamics.system import Damping, Newmark
 from cdpr_dynamics.analysis.live import AUTO_RECHOOSE_M, LivePredictor
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 
 
 @pytest.fixture(scope='module')
@@ -185,3 +188,12 @@ def test_long_gap_under_a_slackening_load_is_stepped(settings):
     predictor.advance(0, [0.0, 0.0, 3000.0])
     predictor.advance(2_000_000_000, [0.0, 0.0, 0.0])
     assert 'node.max_steps_per_wrench' in predictor.notice
+
+
+@pytest.mark.parametrize('name', sorted(p.name for p in CONFIG_DIR.glob('*.yaml')))
+def test_every_shipped_robot_starts_without_a_model_warning(name):
+    """Each shipped config names a model that meets its own tolerance at its initial pose:
+    the node would start at OK, not at a warning the config could avoid."""
+    predictor = LivePredictor(load_settings(CONFIG_DIR / name))
+    assert predictor.last_update is not None
+    assert predictor.last_update.warnings == ()
