@@ -1,10 +1,11 @@
 """cdpr_calibrate fit: sensitivities, pairing, synthetic campaigns recovered, the YAML and CLI.
 
 The campaigns' frequencies come from the package's own model at random poses (the pipeline's
-statics and assembly, :func:`platform_frequencies`'s eigensolver) with 1 % noise; the fit
+statics and assembly, eig(K, M) of the platform: :func:`campaign`) with 1 % noise; the fit
 starts from the config's values and must find the true ones.
 """
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -12,57 +13,21 @@ import pytest
 import scipy.linalg
 from numpy.testing import assert_allclose
 
-from cdpr_dynamics.analysis.calibration import (FitProblem, PoseModel, calibrated_yaml,
-                                                eigenvalue_derivatives, fit, pair_modes,
-                                                parse_targets, resolved_method)
+from cdpr_dynamics.analysis.calibration import (CalibrationError, FitProblem, PoseModel,
+                                                calibrated_yaml, eigenvalue_derivatives, fit,
+                                                pair_modes, parse_targets, resolved_method)
 from cdpr_dynamics.analysis.config import read_params_file, settings_from_params
 from cdpr_dynamics.analysis.modes_table import (ModesTable, TableError, read_modes_table,
                                                 write_modes_table)
-from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilibrium
+from cdpr_dynamics.analysis.synthetic import campaign
 from cdpr_dynamics.cli.calibrate import main
-from cdpr_dynamics.dynamics.system import Damping, platform_frequencies
-from cdpr_dynamics.mechanics.robot import (matrix_to_quaternion, quaternion_to_matrix,
-                                           rotation_vector_quaternion)
+from cdpr_dynamics.dynamics.system import Damping
 
 ROOT = Path(__file__).resolve().parents[1]
 RIGID = ROOT / 'test' / 'data' / 'rigid_cdpr.yaml'
 SAGGING = ROOT / 'test' / 'data' / 'sagging_6dof.yaml'
 PAPER = ROOT / 'config' / 'paper_cdpr.yaml'
-
-
-def campaign(flat, poses, modes, noise=0.01, seed=1, spread_m=0.4, tilt_rad=0.0,
-             damping=None, directions=False):
-    """A modes table of the model ``flat`` at ``poses`` random poses: the ``modes`` lowest
-    platform modes with relative noise ``noise`` (std_hz says so), damping ratios of the
-    Rayleigh ``damping`` with 5 % noise."""
-    settings = settings_from_params(flat)
-    rng = np.random.default_rng(seed)
-    rows, pose_id = [], 0
-    centre = np.asarray(flat['robot.initial_position'], dtype=float)
-    while pose_id < poses:
-        position = centre + rng.uniform(-spread_m, spread_m, 3)
-        quaternion = rotation_vector_quaternion(rng.uniform(-tilt_rad, tilt_rad, 3))
-        try:
-            eq = equilibrium(settings, position, quaternion_to_matrix(quaternion))
-            system = build_system(settings, eq)
-        except AnalysisError:
-            continue
-        # an underactuated robot hangs where it balances, not at the pose asked for
-        position = eq.geometry.position_m
-        quaternion = matrix_to_quaternion(eq.geometry.rotation)
-        freqs = platform_frequencies(system)[:modes]
-        shapes = scipy.linalg.eigh(system.static_stiffness(), system.platform_mass)[1]
-        for j, f in enumerate(freqs):
-            zeta = damping.ratios(f) * (1 + 0.05 * rng.standard_normal()) if damping else np.nan
-            direction = np.full(6, np.nan)
-            if directions:
-                direction[:shapes.shape[0]] = shapes[:, j] / np.linalg.norm(shapes[:, j])
-            rows.append((pose_id, *position, *quaternion, f * (1 + noise * rng.standard_normal()),
-                         noise * f, zeta, 0.05 * zeta, *direction))
-        pose_id += 1
-    a = np.array(rows)
-    return ModesTable(a[:, 0].astype(int), a[:, 1:8], a[:, 8], a[:, 9], a[:, 10], a[:, 11],
-                      a[:, 12:18])
+PULLEYS = ROOT / 'config' / 'paper_pulleys.yaml'
 
 
 def fitted(report, name):
@@ -347,3 +312,41 @@ def test_centre_of_mass_and_inertia_recovered():
         assert abs(fitted(report, f'robot.inertia_kg_m2[{i}]')['fitted'] / true - 1) < 0.10
     held = report['rms_error_pct']['holdout']
     assert held['before'] > 2.0 and held['after'] < 1.5, held
+
+
+def test_one_pulley_radius_shared_by_every_pulley_recovered(tmp_path, capsys):
+    """The rigid robot over the pulleys of paper_pulleys.yaml (1 m winch side), all of one
+    radius: ``robot.pulley_radii_m[*]`` fits that one radius beside EA (true 65 mm, start
+    50 mm) within a few %, every pulley set to it."""
+    config = read_params_file(RIGID)
+    config.update({'model.method': 'spring',
+                   'robot.pulley_axes': read_params_file(PULLEYS)['robot.pulley_axes'],
+                   'robot.pulley_radii_m': [0.05] * 8, 'cable.winch_side_lengths_m': [1.0] * 8})
+    truth = dict(config, **{'robot.pulley_radii_m': [0.065] * 8,
+                            'cable.youngs_modulus_pa': 2.2e10})
+    table = campaign(truth, 40, 6, tilt_rad=0.15, spread_m=0.3)
+    result = fit(config, table, ['robot.pulley_radii_m[*]', 'cable.youngs_modulus_pa'],
+                 holdout=0.25)
+    radius = fitted(result.report, 'robot.pulley_radii_m[*]')
+    assert abs(radius['fitted'] / 0.065 - 1) < 0.05, radius
+    assert abs(radius['fitted'] - 0.065) < 4 * radius['std'] and radius['std'] < 0.003
+    assert result.flat['robot.pulley_radii_m'] == [radius['fitted']] * 8
+    assert abs(fitted(result.report, 'cable.youngs_modulus_pa')['fitted'] / 2.2e10 - 1) < 0.02
+    assert result.report['rms_error_pct']['holdout']['after'] < 1.5
+    text = calibrated_yaml(PULLEYS.read_text(), {'robot.pulley_radii_m': result.flat[
+        'robot.pulley_radii_m']}, {'robot.pulley_radii_m': result.values['robot.pulley_radii_m']})
+    assert 'calibrated (one value for all), standard uncertainty' in text
+    (tmp_path / 'calibrated.yaml').write_text(text)
+    assert read_params_file(tmp_path / 'calibrated.yaml')['robot.pulley_radii_m'] == \
+        pytest.approx([radius['fitted']] * 8, rel=1e-9)
+
+
+@pytest.mark.parametrize('names, message', [
+    (['robot.pulley_radii_m[*]', 'robot.pulley_radii_m[2]'], 'both shared ([*]) and by component'),
+    (['robot.pulley_radii_m[0]', 'robot.pulley_radii_m[*]'], 'both shared ([*]) and by component'),
+    (['robot.mass_kg[*]'], 'is a single number'),
+])
+def test_shared_target_errors(names, message):
+    flat = read_params_file(PULLEYS)
+    with pytest.raises(CalibrationError, match=re.escape(message)):
+        parse_targets(names, flat)

@@ -7,16 +7,12 @@ eigensolution of the same K and M and the damping's modal ratios.
 """
 import numpy as np
 import pytest
-import scipy.linalg
 
 from cdpr_dynamics.analysis.config import read_params_file, settings_from_params
 from cdpr_dynamics.analysis.identification import Options, identify_record
 from cdpr_dynamics.analysis.modes_table import read_modes_table
-from cdpr_dynamics.analysis.pipeline import build_system, equilibrium
+from cdpr_dynamics.analysis.synthetic import free_decay, pose_rows
 from cdpr_dynamics.cli.calibrate import main
-from cdpr_dynamics.dynamics.system import Newmark, rayleigh_from_modal_ratio
-from cdpr_dynamics.mechanics.robot import (matrix_to_quaternion, quaternion_to_matrix,
-                                           rotation_vector_quaternion)
 from cdpr_dynamics.recording.writer import RecordingWriter
 from msg_adapters.pose import pose_message
 from msg_adapters.validation import ns_to_stamp
@@ -34,39 +30,11 @@ def soft_robot():
     return settings_from_params(flat)
 
 
-def decay(settings, position, u0=U0, duration_s=15.0, ratio=0.02, dt_s=1e-3, rate_hz=100.0):
-    """(t, u (n, 6), v, a, natural frequencies, damping ratios, mode shapes) of the free decay
-    from ``u0`` at ``position``, sampled at ``rate_hz``."""
-    system = build_system(settings, equilibrium(settings, np.asarray(position), np.eye(3)))
-    k, m = system.static_stiffness(), system.platform_mass
-    lam, phi = scipy.linalg.eigh(k, m)
-    f = np.sqrt(lam) / (2 * np.pi)
-    damping = rayleigh_from_modal_ratio(ratio, f[0], f[-1])
-    integrator = Newmark(k, m, damping, dt_s)
-    integrator.u = u0
-    integrator.acc = np.linalg.solve(m, -k @ u0)        # at rest: no damping force
-    every = int(round(1.0 / (rate_hz * dt_s)))
-    out = [np.stack([integrator.u, integrator.v, integrator.acc])]
-    zero = np.zeros(6)
-    for i in range(1, int(round(duration_s / dt_s)) + 1):
-        integrator.step(zero)
-        if i % every == 0:
-            out.append(np.stack([integrator.u, integrator.v, integrator.acc]))
-    states = np.array(out)
-    t = np.arange(len(states)) / rate_hz
-    # the average-acceleration rule rings at w' with tan(w' dt / 2) = w dt / 2 (its period
-    # elongation, 3e-4 at 9 Hz here): the frequency the record holds
-    f_record = np.arctan(np.pi * f * dt_s) / (np.pi * dt_s)
-    return t, states[:, 0], states[:, 1], states[:, 2], f_record, damping.ratios(f), phi
-
-
-def pose_samples(position, u, noise_m, rng):
-    """(n, 7) poses of the platform displaced by u (translations, small rotations) plus
-    white noise of ``noise_m`` (m, and rad on the rotations)."""
-    u = u + noise_m * rng.standard_normal(u.shape)
-    quats = [matrix_to_quaternion(quaternion_to_matrix(rotation_vector_quaternion(th)))
-             for th in u[:, 3:]]
-    return np.hstack([position + u[:, :3], quats])
+def decay(settings, position, u0=U0, duration_s=15.0):
+    """(t, u, v, acc, frequencies, damping ratios, mode shapes) of the free decay from ``u0``:
+    2 % Rayleigh damping at the lowest and highest mode, 100 Hz."""
+    d = free_decay(settings, position, u0, duration_s)
+    return d.t_s, d.u, d.v, d.acc, d.frequency_hz, d.damping_ratio, d.shapes
 
 
 def write_poses(path, t_s, poses, topic='/measured_pose'):
@@ -104,13 +72,13 @@ def test_free_decay_in_mcap_identified(tmp_path, capsys):
     t, u, _, _, f, zeta, phi = decay(settings, position)
     rng = np.random.default_rng(0)
     path = tmp_path / 'decay.mcap'
-    write_poses(path, t, pose_samples(position, u, 1e-4, rng))
+    write_poses(path, t, pose_rows(position, u, 1e-4, rng))
     out = tmp_path / 'modes.csv'
     assert main(['identify', str(path), '--output', str(out), '--f-min', '1']) == 0
     table = read_modes_table(out)
     assert set(table.pose_id.tolist()) == {0}
     assert np.abs(table.pose[0, :3] - position).max() < 1e-3
-    result = identify_record(t, pose_samples(position, u, 1e-4, np.random.default_rng(0)),
+    result = identify_record(t, pose_rows(position, u, 1e-4, np.random.default_rng(0)),
                              options=Options(f_min_hz=1.0))
     (stretch,) = result.stretches
     assert np.allclose(table.frequency_hz, [m.frequency_hz for m in stretch.modes], rtol=1e-8)
@@ -133,9 +101,9 @@ def test_messy_record_motion_gaps_and_large_oscillation():
     move = a + (b - a) * (0.5 - 0.5 * np.cos(np.pi * move_t / 2.0))[:, None]
     still = np.tile([0.0, 0.0, 0.0, 1.0], (len(ramp_t), 1))
     parts = [(ramp_t, np.hstack([ramp, still])),
-             (t1, pose_samples(a, u1, 1e-4, rng)),
+             (t1, pose_rows(a, u1, 1e-4, rng)),
              (move_t, np.hstack([move, np.tile([0.0, 0.0, 0.0, 1.0], (len(move_t), 1))])),
-             (t2, pose_samples(b, u2, 1e-4, rng))]
+             (t2, pose_rows(b, u2, 1e-4, rng))]
     times, rows, offset = [], [], 0.0
     for t, r in parts:
         times.append(t + offset)
@@ -193,7 +161,7 @@ def test_a_noisy_decay_gives_right_modes_or_none(seed):
     settings = soft_robot()
     position = np.array([0.1, -0.05, 1.3])
     t, u, _, _, f, zeta, _ = decay(settings, position, duration_s=20.0)
-    rows = pose_samples(position, u, 1e-3, np.random.default_rng(seed))
+    rows = pose_rows(position, u, 1e-3, np.random.default_rng(seed))
     (stretch,) = identify_record(t, rows, options=Options(f_min_hz=1.0)).stretches
     found = [m.frequency_hz for m in stretch.modes]
     assert abs(found[0] / f[0] - 1) < 0.005
@@ -215,7 +183,7 @@ def test_taps_at_one_pose_are_separate_decays():
     quiet = np.zeros((400, 6))
     u = np.concatenate([quiet, u1, u2 + u1[-1]])
     t = np.arange(u.shape[0]) * 0.01
-    rows = pose_samples(position, u, 1e-4, np.random.default_rng(4))
+    rows = pose_rows(position, u, 1e-4, np.random.default_rng(4))
     result = identify_record(t, rows, options=Options(f_min_hz=1.0))
     assert len(result.stretches) == 2
     starts = [s.start_s for s in result.stretches]

@@ -40,6 +40,8 @@ DAMPING_PARAMETERS = ('damping.modal_ratio', 'damping.mass_factor', 'damping.sti
 #: A combination whose singular value of the scaled Jacobian is below this times the largest
 #: is called unidentifiable: its uncertainty is that many times the best-determined one's.
 MIN_SINGULAR_RATIO = 1e-3
+#: Vector parameters whose components cannot be negative (lengths).
+NON_NEGATIVE = ('robot.pulley_radii_m', 'cable.winch_side_lengths_m')
 #: Relative step of a parameter in the finite differences of K and M.
 STEP = 1e-6
 #: Residual of every mode where a trial parameter set makes no model (a refused pose or a
@@ -55,7 +57,9 @@ STATICS_FREE = ('robot.inertia_kg_m2',)
 MAX_PAIR_LOG = 0.25
 #: Eigenvalues closer than this (relative) are one repeated eigenvalue in the sensitivities.
 REPEATED = 1e-6
-_TARGET = re.compile(r'([A-Za-z_][A-Za-z0-9_.]*)(?:\[(\d+)\])?')
+_TARGET = re.compile(r'([A-Za-z_][A-Za-z0-9_.]*)(?:\[(\d+|\*)\])?')
+#: The index of a target that is one value shared by every component of a vector (``name[*]``).
+SHARED = '*'
 
 
 class CalibrationError(ValueError):
@@ -64,10 +68,11 @@ class CalibrationError(ValueError):
 
 @dataclass(frozen=True)
 class Target:
-    """One fitted number: parameter ``parameter``, component ``index`` (None: a scalar)."""
+    """One fitted number: parameter ``parameter``, component ``index`` (None: a scalar;
+    :data:`SHARED`: one value for every component of a vector)."""
 
     parameter: str
-    index: int | None
+    index: int | str | None
 
     @property
     def name(self) -> str:
@@ -75,14 +80,16 @@ class Target:
 
 
 def parse_targets(names, flat: dict) -> tuple[Target, ...]:
-    """The numbers ``--fit`` names: whole parameters (every component of a vector) or single
-    components ``name[i]``; each a numeric parameter of the configuration table."""
+    """The numbers ``--fit`` names: whole parameters (every component of a vector), single
+    components ``name[i]``, or one value shared by every component ``name[*]`` (the pulley
+    radius of a robot whose pulleys are all alike); each a numeric parameter of the
+    configuration table."""
     targets = []
     for text in names:
         match = _TARGET.fullmatch(str(text).strip())
         if not match:
-            raise CalibrationError(f'--fit {text!r}: write a parameter name, or name[i] for a '
-                                   f'component')
+            raise CalibrationError(f'--fit {text!r}: write a parameter name, name[i] for a '
+                                   f'component, or name[*] for one value shared by all')
         name, index = match.group(1), match.group(2)
         check_names([name])
         param = PARAMETER_BY_NAME.get(name)
@@ -96,6 +103,10 @@ def parse_targets(names, flat: dict) -> tuple[Target, ...]:
             found = [Target(name, None)]
         elif index is None:
             found = [Target(name, i) for i in range(value.size)]
+        elif index == SHARED:
+            if value.size == 0:
+                raise CalibrationError(f'--fit {text}: {name} has no values')
+            found = [Target(name, SHARED)]
         elif int(index) >= value.size:
             raise CalibrationError(f'--fit {text}: {name} has {value.size} values')
         else:
@@ -103,6 +114,11 @@ def parse_targets(names, flat: dict) -> tuple[Target, ...]:
         for target in found:
             if target in targets:
                 raise CalibrationError(f'--fit names {target.name} twice')
+            shared = {t.parameter for t in targets if t.index == SHARED}
+            if target.parameter in shared or (target.index == SHARED and any(
+                    t.parameter == target.parameter for t in targets)):
+                raise CalibrationError(f'--fit names {target.parameter} both shared ([*]) and '
+                                       'by component')
             targets.append(target)
     return tuple(targets)
 
@@ -120,11 +136,12 @@ def current_value(flat: dict, name: str):
 
 
 def target_values(flat: dict, targets) -> np.ndarray:
-    """The current values of ``targets`` in ``flat``."""
+    """The current values of ``targets`` in ``flat`` (a shared one: the components' mean)."""
     out = []
     for t in targets:
         value = current_value(flat, t.parameter)
-        out.append(value if t.index is None else value[t.index])
+        out.append(value if t.index is None else np.mean(value) if t.index == SHARED
+                   else value[t.index])
     return np.array(out, dtype=float)
 
 
@@ -138,7 +155,10 @@ def with_values(flat: dict, targets, values) -> dict:
             continue
         if target.parameter not in arrays:
             arrays[target.parameter] = current_value(flat, target.parameter).copy()
-        arrays[target.parameter][target.index] = value
+        if target.index == SHARED:
+            arrays[target.parameter][:] = value
+        else:
+            arrays[target.parameter][target.index] = value
     out.update({name: array.tolist() for name, array in arrays.items()})
     return out
 
@@ -147,7 +167,7 @@ def _scale(flat: dict, target: Target, value: float) -> float:
     """The size of a relative change of ``target``: |value|, else a typical size."""
     if value != 0.0:
         return abs(value)
-    if target.index is not None:
+    if target.index is not None and target.index != SHARED:
         whole = np.abs(current_value(flat, target.parameter))
         if whole.max() > 0:
             return float(whole.max())
@@ -155,9 +175,12 @@ def _scale(flat: dict, target: Target, value: float) -> float:
 
 
 def _bounds(target: Target) -> tuple[float, float]:
-    """Bounds of a fitted number: the table's range; a positive inertia diagonal."""
+    """Bounds of a fitted number: the table's range; a positive inertia diagonal; pulley
+    radii and winch-side lengths not negative."""
     param = PARAMETER_BY_NAME[target.parameter]
-    if target.parameter == 'robot.inertia_kg_m2' and target.index < 3:
+    if target.parameter == 'robot.inertia_kg_m2' and target.index in (0, 1, 2):
+        return 0.0, np.inf
+    if target.parameter in NON_NEGATIVE:
         return 0.0, np.inf
     if param.low is not None:
         return param.low, param.high
@@ -699,6 +722,8 @@ def _uncertainty_comment(parameter: str, fitted: dict) -> str:
     """``calibrated, standard uncertainty 1.2e+08`` or per component ``[0] 0.01, [2] 0.02``."""
     if list(fitted) == [None]:
         return f'calibrated, standard uncertainty {fitted[None][1]:.3g}'
+    if list(fitted) == [SHARED]:
+        return f'calibrated (one value for all), standard uncertainty {fitted[SHARED][1]:.3g}'
     parts = ', '.join(f'[{i}] {s:.3g}' for i, (_, s) in sorted(fitted.items()))
     return f'calibrated, standard uncertainty {parts}'
 

@@ -393,7 +393,7 @@ def _envelope_start(y: np.ndarray, limit: float) -> int:
 
 
 def _identify_span(result: RecordResult, t, y, values, first: int, end: int, kind: str,
-                   options: Options, f_max: float, posed: bool) -> None:
+                   options: Options, f_max: float, posed: bool, method) -> None:
     """Identify samples [first, end) of a piece as one free decay, or say why not."""
     dt = t[1] - t[0]
     span = (float(t[first]), float(t[end - 1]))
@@ -402,7 +402,7 @@ def _identify_span(result: RecordResult, t, y, values, first: int, end: int, kin
                                       f'{options.min_duration_s:g} s',))
         return
     last = min(end, first + int(round(options.max_window_s / dt)) + 1)
-    modes = identify_decay(t[first:last], y[first:last], kind, options, f_max)
+    modes = method(t[first:last], y[first:last], kind, options, f_max)
     if not modes:
         result.skipped.append(span + ('no mode stands out of the noise',))
         return
@@ -412,12 +412,13 @@ def _identify_span(result: RecordResult, t, y, values, first: int, end: int, kin
 
 
 def identify_record(t_s, samples, kind: str = 'pose', options: Options = Options(),
-                    poses=None) -> RecordResult:
+                    poses=None, method=identify_decay) -> RecordResult:
     """Identify every free decay at rest in a record.
 
     ``samples``: (n, 7) poses (x y z qx qy qz qw) for ``kind='pose'``, (n, 6) angular velocity
     and linear acceleration for ``kind='imu'`` (then ``poses``: (n, 7) the platform pose at
-    each sample, or None)."""
+    each sample, or None). ``method`` identifies one decay (the signature of
+    :func:`identify_decay`; another algorithm can be compared on the same stretches)."""
     if kind not in KINDS:
         raise IdentificationError(f'record kind {kind!r} is not one of {", ".join(KINDS)}')
     samples = np.asarray(samples, dtype=float)
@@ -475,7 +476,7 @@ def identify_record(t_s, samples, kind: str = 'pose', options: Options = Options
                     result.skipped.append((float(t[done]), float(t[first + a - 1]),
                                            'at rest before an excitation (no free decay)'))
                 _identify_span(result, t, y, values, first + a, first + b, kind, options,
-                               f_max, pose_samples is not None)
+                               f_max, pose_samples is not None, method)
                 done = first + b
         if position < t.size:
             result.skipped.append((float(t[position]), float(t[-1]),
