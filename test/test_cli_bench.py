@@ -68,3 +68,19 @@ def test_slack_rate_accounts_for_every_wrench_of_the_demo_load(ros_env):
     assert row['sent'] == 1000 and row['predicted'] > 0
     assert row['predicted'] + row['rejected'] + row['lost'] == row['sent'] and row['lost'] >= 0
     assert 0.0 < row['slack_time_s'] <= 1.0
+
+
+def test_bench_calibration_quick_fits_and_identifies(tmp_path):
+    """cdpr_bench --calibration --quick: the fit row fits its 9 parameters to the noise level,
+    the identify row reads its MCAP record back and finds the decay's modes."""
+    out = subprocess.run([installed('cdpr_bench'), '--calibration', '--quick', '--json',
+                          str(tmp_path / 'c.json')], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    result = json.loads((tmp_path / 'c.json').read_text())
+    fit = result['fit']
+    assert fit['parameters'] == fit['fitted'] == 9 and fit['poses'] == 10
+    assert fit['rms_error_pct_after'] < 1.5 and fit['seconds'] > 0      # 1 % noise
+    identify = result['identify']
+    assert identify['samples'] == 2001 and identify['read_p50_s'] > 0
+    assert 4 <= identify['modes_found'] <= identify['true_modes'] == 6
+    assert 'cdpr_calibrate fit: 9 parameters' in out.stdout

@@ -293,19 +293,20 @@ def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 20):
     r, a, coef = solve(x)
     jac = jacobian(x, r)
     mu = 1e-3
-    for _ in range(steps):          # Levenberg-Marquardt
-        normal = jac.T @ jac
-        dx = np.linalg.solve(normal + mu * np.diag(np.diag(normal)), -jac.T @ r)
-        r_new, a_new, coef_new = solve(x + dx)
-        if r_new @ r_new < r @ r:
-            done = r @ r - r_new @ r_new < 1e-10 * (r @ r)
-            x, r, a, coef = x + dx, r_new, a_new, coef_new
-            jac = jacobian(x, r)
-            mu = max(mu / 3.0, 1e-9)
-            if done:
-                break
-        else:
-            mu *= 4.0
+    with np.errstate(over='ignore', invalid='ignore'):   # a growing trial: refused
+        for _ in range(steps):          # Levenberg-Marquardt
+            normal = jac.T @ jac
+            dx = np.linalg.solve(normal + mu * np.diag(np.diag(normal)), -jac.T @ r)
+            r_new, a_new, coef_new = solve(x + dx)
+            if r_new @ r_new < r @ r:
+                done = r @ r - r_new @ r_new < 1e-10 * (r @ r)
+                x, r, a, coef = x + dx, r_new, a_new, coef_new
+                jac = jacobian(x, r)
+                mu = max(mu / 3.0, 1e-9)
+                if done:
+                    break
+            else:
+                mu *= 4.0
     dof = max(r.size - 2 * m - (2 * m + 1) * c, 1)
     s2 = float(r @ r) / dof
     cov = np.linalg.pinv(jac.T @ jac) * s2

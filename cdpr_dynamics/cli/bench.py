@@ -2,6 +2,7 @@
 
     cdpr_bench [--config PATH] [--quick] [--dds] [--json PATH]
     cdpr_bench --workspace [--config PATH] [--quick] [--json PATH]
+    cdpr_bench --calibration [--config PATH] [--quick] [--json PATH]
 
 Stages: tension QP (cold, warm), model build per method and size, a 391-point FRF, a 1000-step
 Newmark time history, an underactuated robot's statics (at an equilibrium, and the
@@ -381,11 +382,18 @@ def main(argv=None) -> int:
     parser.add_argument('--workspace', action='store_true',
                         help='instead: what a cdpr_workspace run costs (poses/s per worker, '
                         '1 -> 2 worker scaling, engine overhead per chunk size)')
+    parser.add_argument('--calibration', action='store_true',
+                        help='instead: cdpr_calibrate fit (9 parameters, 50 poses x 4 modes) '
+                        'and identify (a 100 s record at 100 Hz) on synthetic measurements; '
+                        '--config: a 6-DOF robot (default: the rigid test robot)')
     args = parser.parse_args(argv)
     try:
         if args.workspace:
             from cdpr_dynamics.cli import bench_workspace
             result = bench_workspace.run(args.config, args.quick)
+        elif args.calibration:
+            from cdpr_dynamics.cli import bench_calibration
+            result = bench_calibration.run(args.config, args.quick)
         else:
             settings = load_settings(args.config)
             config = args.config or str(default_config_path())
@@ -403,6 +411,9 @@ def main(argv=None) -> int:
             return 1
     if args.workspace:
         print(bench_workspace.summary(result))
+        return 0
+    if args.calibration:
+        print(bench_calibration.summary(result))
         return 0
     print(summary(result))
     return 0
