@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cdpr_dynamics.analysis.config import read_params_file, settings_from_params
-from cdpr_dynamics.analysis.identification import Options, identify_record
+from cdpr_dynamics.analysis.identification import Options, identify_record, refine
 from cdpr_dynamics.analysis.modes_table import read_modes_table
 from cdpr_dynamics.analysis.synthetic import free_decay, pose_rows
 from cdpr_dynamics.cli.calibrate import main
@@ -191,3 +191,15 @@ def test_taps_at_one_pose_are_separate_decays():
     assert any('before an excitation' in reason for *_, reason in result.skipped)
     for stretch in result.stretches:
         check_modes(stretch.modes, f, zeta, count=4)
+
+
+def test_refinement_from_two_equal_poles_does_not_fail():
+    """Two starting poles alike make the amplitudes' normal equations singular: the
+    refinement falls back to least-norm amplitudes (no LinAlgError) and keeps the mode."""
+    t = np.arange(1500) * 0.01
+    pole = complex(-0.02 * 2 * np.pi * 3.0, 2 * np.pi * 3.0)
+    y = np.real(np.outer(np.exp(pole * t), [1.0, 0.5 - 0.2j]))
+    y += 1e-4 * np.random.default_rng(0).standard_normal(y.shape)
+    poles, _, _, snr = refine(t, y, [pole, pole])
+    best = poles[int(np.argmax(snr))]
+    assert abs(best.imag / pole.imag - 1) < 1e-3 and abs(best.real / pole.real - 1) < 0.05

@@ -277,7 +277,10 @@ def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 20):
         a = np.concatenate([_basis(t, p), np.ones((n, 1))], axis=1)
         norm = np.linalg.norm(a, axis=0)
         an = a / norm                        # normal equations of unit columns: (2m+1)^2
-        coef = np.linalg.solve(an.T @ an, an.T @ ys) / norm[:, None]
+        try:
+            coef = np.linalg.solve(an.T @ an, an.T @ ys) / norm[:, None]
+        except np.linalg.LinAlgError:        # two trial poles alike: least norm amplitudes
+            coef = np.linalg.lstsq(an, ys, rcond=None)[0] / norm[:, None]
         return (a @ coef - ys).ravel(), a, coef
 
     def jacobian(x, r):
