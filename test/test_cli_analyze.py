@@ -153,7 +153,7 @@ def test_shaper_command_prints_what_the_node_publishes(tmp_path):
     assert_allclose(doc['shaper']['times_s'], shaping.shaper.times_s)
     assert_allclose(doc['shaper']['amplitudes'], shaping.shaper.amplitudes)
     assert_allclose(doc['shaper']['notches'], shaping.notches)
-    assert_allclose(doc['length_offsets_m'], length_offsets(eq))
+    assert_allclose(doc['length_offsets_m'], length_offsets(settings.robot, eq))
     labels = doc['vibration_modes']['labels']
     assert labels[:4] == ['frequency_hz', 'damping_ratio', 'platform_energy_fraction', 'kind']
     assert 'ei shaper for ' in out.stdout and out.stdout.count('  t = ') == 9

@@ -24,7 +24,7 @@ def test_straight_cables_stretch_by_t_l0_over_ea_and_land_on_the_pose():
     eq = equilibrium(settings)
     ea = settings.cable.ea_n
     tension = eq.tensions.tension_n
-    offset = length_offsets(eq)
+    offset = length_offsets(settings.robot, eq)
     l0 = eq.geometry.length_m + offset
     assert np.all(offset < 0)
     assert_allclose(-offset, tension * l0 / ea, rtol=1e-9)     # L0 - L: round-off of L
@@ -47,6 +47,44 @@ def test_straight_cables_stretch_by_t_l0_over_ea_and_land_on_the_pose():
     assert np.linalg.norm(p - settings.initial_position_m) < 1e-9
 
 
+def test_cables_over_pulleys_include_the_wrap_and_land_on_the_pose():
+    """paper_pulleys: 50 mm swivelling pulleys and 3 m of cable from each winch. A cable of
+    the winch's unstretched length (the rigid length, winch side plus |D - A|, plus the offset)
+    runs winch side, wrap and free span at one tension, EA (length - L0) / L0; Newton on the
+    platform position from 1 cm off (forces along the free spans of the pulleys' geometry at
+    each trial position) finds the commanded pose. Offsets without the wrap and the winch
+    side's stretch land elsewhere."""
+    from cdpr_dynamics.mechanics.robot import geometry
+    settings = load_settings(CONFIG / 'paper_pulleys.yaml')
+    robot, ea = settings.robot, settings.cable.ea_n
+    eq = equilibrium(settings)
+    assert eq.geometry.pulleys is not None and np.all(robot.winch_side_lengths_m > 0)
+    offset = length_offsets(robot, eq)
+    target = settings.initial_position_m
+    rigid = robot.winch_side_lengths_m + np.linalg.norm(robot.anchors_m - target, axis=1)
+    load = required_wrench(robot, settings.external_force_n, settings.external_moment_nm)[:3]
+
+    def balance(p, l0):
+        geo = geometry(robot, p)
+        pull = ea * (robot.winch_side_lengths_m + geo.path_length_m - l0) / l0
+        return geo.unit.T @ pull - load
+
+    def landing(l0):
+        p = target + np.array([0.01, -0.01, 0.01])
+        for _ in range(30):
+            h = 1e-7
+            jacobian = np.column_stack([(balance(p + h * e, l0) - balance(p - h * e, l0))
+                                        / (2 * h) for e in np.eye(3)])
+            p = p - np.linalg.solve(jacobian, balance(p, l0))
+        return p
+    assert np.linalg.norm(landing(rigid + offset) - target) < 1e-9
+    bare = np.asarray(eq.unstretched_length_m) - eq.geometry.length_m    # span's stretch only
+    assert np.linalg.norm(landing(rigid + bare) - target) > 1e-4
+    # the wrap lengthens the path: r beta + |B - A| > |D - A|
+    wrap = eq.geometry.path_length_m - (rigid - robot.winch_side_lengths_m)
+    assert np.all(wrap > 0) and np.all(offset > bare)
+
+
 def catenary_reach(end_force, l0, ea, gamma, up):
     """The far end of an elastic catenary of unstretched length l0 seen from its platform end,
     by quadrature: the cable's tension vector at unstretched arc s from the platform is the
@@ -66,7 +104,7 @@ def catenary_reach(end_force, l0, ea, gamma, up):
 def test_sagged_cables_reach_their_anchors_from_the_commanded_pose():
     settings = load_settings(CONFIG / 'heavy_sag_6dof.yaml')
     eq = equilibrium_for(settings, equilibrium(settings), 'catenary_exact')
-    offset = length_offsets(eq)
+    offset = length_offsets(settings.robot, eq)
     l0 = eq.geometry.length_m + offset
     gamma = settings.cable.weight_per_length_n_per_m
     up = -np.asarray(settings.robot.gravity_m_s2, dtype=float)
@@ -105,5 +143,5 @@ def test_predicted_stretch_rate_is_the_chord_rate_of_the_motion():
 def test_length_offsets_of_the_paper_robot_are_micrometres(method):
     """Paper robot: T in [100, 1000] N over EA = 1.01e6 N and L ~ 2.2 m: 0.2-2 mm."""
     settings = load_settings(CONFIG / 'paper_cdpr.yaml').replace(method=method)
-    offset = length_offsets(LivePredictor(settings).eq)
+    offset = length_offsets(settings.robot, LivePredictor(settings).eq)
     assert np.all((offset < -1e-4) & (offset > -3e-3))

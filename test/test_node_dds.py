@@ -1036,6 +1036,60 @@ def test_input_loop_serves_its_subscriptions_in_order_and_stops(ros_env):
     assert 'stopped after' in result.stdout and 'stop() ended the loop' in result.stdout
 
 
+def test_vibration_modes_of_a_moving_pose_carry_the_pose_they_belong_to(ros):
+    """fem 16 (modes of 10-100 ms, in the worker): while the pose moves on faster than the
+    modes come, each vibration_modes table carries the stamp of a pose sent and holds the
+    modes of that pose's model (modes_job on the mirror's equilibrium there); once the pose
+    stays, the last pose's table comes."""
+    from std_msgs.msg import Float64MultiArray
+
+    from cdpr_dynamics.ros.worker import modes_job
+    from msg_adapters.arrays import read_table
+
+    node = Harness(PAPER, ros['log_dir'], 'moving_modes', {'model.method': 'fem',
+                                                           'model.elements_per_cable': 16})
+    try:
+        node.settings = node.settings.replace(method='fem', elements_per_cable=16)
+        node.mirror = LivePredictor(node.settings)
+        tables = []
+
+        def keep(msg):
+            with node.cond:
+                tables.append(read_table(msg))
+                node.cond.notify_all()
+        node.node.create_subscription(Float64MultiArray, 'vibration_modes', keep, QoSProfile(
+            depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        assert node.wait(lambda: tables)
+        equilibria = {}
+        centre = node.settings.initial_position_m
+        deadline = time.monotonic() + 3.0
+        k = 0
+        while time.monotonic() < deadline:            # poses 30 ms apart for 3 s, each rebuilt
+            angle = 0.1 * k
+            node.pose(centre + 0.05 * np.array([np.cos(angle), np.sin(angle), 0.0]),
+                      dt_s=0.03)
+            equilibria[node.t_ns] = node.mirror.eq
+            k += 1
+            time.sleep(0.03)
+        last = node.t_ns
+        assert node.wait(lambda: any(keys['pose_stamp_ns'] == last for _, _, keys in tables),
+                         30.0)
+        stamped = [(keys['pose_stamp_ns'], rows) for rows, _, keys in tables
+                   if keys['pose_stamp_ns'] in equilibria]
+        # during the motion (a job the pose outlived answers) and at its end
+        assert len({stamp for stamp, _ in stamped}) >= 2
+        assert all(keys['pose_stamp_ns'] in equilibria or keys['pose_stamp_ns'] == 0
+                   for _, _, keys in tables)
+        point = {'point_m': (0.0, 0.0, 0.0), 'shaper': 'none', 'shaper_modes': 1,
+                 'sample_rate_hz': 1000.0}
+        for stamp, rows in stamped:
+            expected = modes_job(node.settings, equilibria[stamp], 'fem', 16, 1000,
+                                 point)['mode_table']
+            np.testing.assert_allclose(rows, expected, rtol=1e-6, atol=1e-9)
+    finally:
+        assert node.close() == 0
+
+
 def test_controller_topics_and_slack(ros):
     """vibration_modes, input_shaper, notch_filter and cable_length_offsets against the library
     (modes_job, the shapers, length_offsets), and the slack diagnostics under the paper's
@@ -1087,7 +1141,8 @@ def test_controller_topics_and_slack(ros):
         gain = np.abs(shapers.biquad_response(notches[0], [0.0, rows[0, 0]], 1000.0))
         assert gain[0] == pytest.approx(1.0) and gain[1] < 1e-9
         offsets = got['cable_length_offsets'][-1]
-        np.testing.assert_allclose(offsets.position, length_offsets(eq), rtol=1e-9)
+        np.testing.assert_allclose(offsets.position, length_offsets(node.settings.robot, eq),
+                                   rtol=1e-9)
         np.testing.assert_allclose(offsets.effort, eq.tensions.tension_n, rtol=1e-9)
         # a moved pose: new modes stamped with that pose
         stamp_before = len(got['vibration_modes'])

@@ -10,9 +10,10 @@ filters for the lowest platform modes, and the cables' length offsets (doc/node_
 * :func:`controller_shaping`: the ``node.shaper`` shaper convolved over the
   ``node.shaper_modes`` lowest underdamped platform modes
   (:mod:`cdpr_dynamics.dynamics.shapers`) and a notch biquad per mode.
-* :func:`length_offsets`: per cable its unstretched length minus its straight chord (m),
-  what a winch adds to the rigid-cable kinematics: -T L0 / EA for a taut straight cable, the
-  catenary's L0 - chord for a sagged one.
+* :func:`length_offsets`: per cable its unstretched length minus its rigid straight-line
+  length from its anchor (m), what a winch adds to the rigid-cable kinematics: -T L0 / EA for
+  a taut straight cable, the catenary's L0 - chord for a sagged one; over a pulley also the
+  wrap (r beta + |B - A| - |D - A|) and, with cable between winch and anchor, its stretch.
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from cdpr_dynamics.analysis.pipeline import Equilibrium, point_displacement
 from cdpr_dynamics.dynamics import shapers
 from cdpr_dynamics.dynamics.modes import Modes
 from cdpr_dynamics.dynamics.system import Damping, PlatformSystem
+from cdpr_dynamics.mechanics.robot import Robot, row_norm
 
 MODE_COLUMNS = ('frequency_hz', 'damping_ratio', 'platform_energy_fraction', 'kind')
 KIND_CODES = {'platform': 0, 'cable': 1, 'mixed': 2}
@@ -121,20 +123,32 @@ def controller_shaping(found: Modes, damping: Damping, kind: str, count: int,
     return Shaping(freqs, ratios, shaper, np.reshape(notches, (-1, 6)), tuple(skipped))
 
 
-def length_offsets(eq: Equilibrium) -> np.ndarray:
-    """(n,) unstretched length minus straight chord per cable (m; module docstring)."""
-    return np.asarray(eq.unstretched_length_m, dtype=float) - eq.geometry.length_m
+def length_offsets(robot: Robot, eq: Equilibrium) -> np.ndarray:
+    """(n,) per cable: its unstretched length from the winch minus the rigid-cable length, the
+    winch side plus the straight line |D - A| from its anchor D to its attachment A (m; module
+    docstring). The free span contributes its own unstretched length (straight or sagged);
+    the cable in series at the anchor end (wrapped on the pulley, winch side) carries the
+    span's anchor-end tension T_a: its length S unstretched is S EA / (EA + T_a)."""
+    geo = eq.geometry
+    span = np.asarray(eq.unstretched_length_m, dtype=float)
+    if geo.anchor_end is None:
+        return span - geo.length_m
+    tension = eq.sag.state.anchor_tension_n if eq.statics == 'sag' else eq.tensions.tension_n
+    ea = eq.cables.ea_n
+    series = geo.anchor_end.series_length_m
+    straight = row_norm(robot.anchors_m - (geo.position_m + geo.lever_m))
+    return span + series * ea / (ea + tension) - robot.winch_side_lengths_m - straight
 
 
-def controller_document(system: PlatformSystem, found: Modes, damping: Damping, eq: Equilibrium,
-                        f_max_hz: float, kind: str, count: int, sample_rate_hz: float,
-                        point_m=(0.0, 0.0, 0.0)) -> dict:
+def controller_document(robot: Robot, system: PlatformSystem, found: Modes, damping: Damping,
+                        eq: Equilibrium, f_max_hz: float, kind: str, count: int,
+                        sample_rate_hz: float, point_m=(0.0, 0.0, 0.0)) -> dict:
     """What the node publishes for a controller, as JSON: ``vibration_modes`` (labels,
     rows), the ``kind`` shaper (``none``: none), its notches and the length offsets."""
     table = mode_table(system, found, damping, f_max_hz, point_m)
     doc = {'vibration_modes': {'labels': list(mode_labels(system.platform_dofs)),
                                'rows': table.tolist()},
-           'length_offsets_m': length_offsets(eq).tolist()}
+           'length_offsets_m': length_offsets(robot, eq).tolist()}
     if kind != 'none':
         shaping = controller_shaping(found, damping, kind, count, sample_rate_hz)
         doc['shaper'] = {'kind': kind, 'modes_hz': shaping.frequency_hz.tolist(),

@@ -124,7 +124,7 @@ def analyze_method(settings: Settings, eq: Equilibrium, excitations_hz, duration
     extra = {}
     if controller is not None and found is not None:
         extra['controller'] = controller_document(
-            system, found, damping, eq, settings.f_max_hz, controller['kind'],
+            settings.robot, system, found, damping, eq, settings.f_max_hz, controller['kind'],
             controller['count'], controller['sample_rate_hz'], settings.frf_point_m)
     return {
         **extra,

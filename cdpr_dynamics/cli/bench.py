@@ -244,6 +244,12 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
                 dds_config, 1000.0, 2.0 if quick else 10.0,
                 {'model.method': method, 'model.elements_per_cable': n})
             for method, n in (('spring', 1), ('fem', 16))}
+        # vibration_modes: pose -> table (station to station), and while the pose moves on
+        result['modes_latency'] = {
+            f'{method}_n{n}' if method == 'fem' else method: bench_node.modes_latency(
+                dds_config, {'model.method': method, 'model.elements_per_cable': n},
+                poses=3 if quick else 20, spacing_s=spacing, moving_s=1.0 if quick else 3.0)
+            for method, n, spacing in (('spring', 1, 1.0), ('fem', 16, 1.5))}
         result['controller'] = bench_node.controller_rate(dds_config,
                                                           duration_s=2.0 if quick else 10.0)
         # the heavy-sag 6-DOF robot, fem_sag 16: pose updates of milliseconds at 50 Hz, solved
@@ -344,6 +350,15 @@ def summary(result: dict) -> str:
                          f"{row['rejected']} rejected, {row['slack_time_s']:.2f} s slack; "
                          f"compute p50/p99 {row['compute_ms_p50']:.3f}/"
                          f"{row['compute_ms_p99']:.3f} ms")
+        for method, row in result['modes_latency'].items():
+            moving = row['moving']
+            lines.append(f"vibration_modes {method}: pose -> table p50/p99 "
+                         f"{row['latency']['p50_ms']:.1f}/{row['latency']['p99_ms']:.1f} ms "
+                         f"({row['poses']} poses {row['spacing_s']:g} s apart, "
+                         f"{row['missing']} without a table); poses at 50 Hz: "
+                         f"{moving['tables']} tables for {moving['poses']} poses, age p50 "
+                         f"{moving['age']['p50_ms']:.1f} ms, {moving['foreign_stamps']} "
+                         "not stamped with a pose sent")
         lines.append(_controller_line('controller', result['controller']))
         for mode, ctl in result['controller_heavy_sag'].items():
             lines.append(_controller_line(f'heavy_sag_6dof, node.rebuild {mode}:', ctl))

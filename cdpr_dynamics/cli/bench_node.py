@@ -440,6 +440,113 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
         reservation.release()
 
 
+def modes_latency(config, parameters: dict | None = None, poses: int = 20,
+                  spacing_s: float = 1.0, moving_s: float = 3.0) -> dict:
+    """``vibration_modes`` against a dynamics_node child process: (1) ``poses`` poses 5 cm
+    apart on a circle, ``spacing_s`` apart (a robot going from station to station): the time
+    from publishing each to receiving the table stamped with it (p50/p99, and how many never
+    came); (2) poses at 50 Hz for ``moving_s`` (a robot moving on): the tables received while
+    it moves, each stamped with one of the poses sent (``foreign_stamps`` counts the others),
+    and their age (receipt minus the publishing of the pose they carry)."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
+    from rclpy.signals import SignalHandlerOptions
+    from std_msgs.msg import Float64MultiArray
+
+    from cdpr_dynamics.analysis.live import rotated_quaternion
+    from cdpr_dynamics.ros.process import start_node, stop_process
+    from msg_adapters.arrays import read_table
+    from msg_adapters.pose import pose_message
+    from msg_adapters.validation import s_to_stamp, stamp_to_ns
+
+    settings = load_settings(config)
+    frame = settings.robot.frame_id
+    quaternion = rotated_quaternion(settings.initial_rotation, np.zeros(3))
+    reservation, env = _ros_session('modes')
+    log = open(Path(env['ROS_LOG_DIR']) / 'node.log', 'w')
+    proc = start_node(config, env, parameters, stdout=log, stderr=subprocess.STDOUT)
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    node = Node('cdpr_bench_modes')
+    cond = threading.Condition()
+    tables = []              # (receipt time, pose stamp ns)
+
+    def on_table(msg):
+        now = time.perf_counter()
+        with cond:
+            tables.append((now, read_table(msg)[2]['pose_stamp_ns']))
+            cond.notify_all()
+
+    node.create_subscription(Float64MultiArray, 'vibration_modes', on_table,
+                             QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    pub = node.create_publisher(PoseStamped, 'pose', qos_profile_sensor_data)
+    executor_ = SingleThreadedExecutor()
+    executor_.add_node(node)
+    stop = threading.Event()
+    spinner = threading.Thread(target=lambda: [executor_.spin_once(0.05)
+                                               for _ in iter(stop.is_set, True)], daemon=True)
+    spinner.start()
+    sent = {}
+    t_stamp = 1000.0
+
+    def send(k: int, count: int) -> int:
+        nonlocal t_stamp
+        t_stamp += 0.02
+        stamp = s_to_stamp(t_stamp)
+        sent[stamp_to_ns(stamp)] = time.perf_counter()
+        pub.publish(pose_message(_circle(settings, k, count), quaternion, frame, stamp))
+        return stamp_to_ns(stamp)
+
+    try:
+        with cond:
+            if not cond.wait_for(lambda: tables and pub.get_subscription_count() > 0, 60.0):
+                raise RuntimeError('dynamics_node did not come up')
+        time.sleep(spacing_s)
+        latency, missing = [], 0
+        for k in range(poses):
+            ns = send(k, poses)
+            with cond:
+                got = cond.wait_for(lambda: any(s == ns for _, s in tables), spacing_s)
+                arrival = next((t for t, s in tables if s == ns), None)
+            if got and arrival is not None:
+                latency.append(arrival - sent[ns])
+                time.sleep(max(0.0, spacing_s - (time.perf_counter() - sent[ns])))
+            else:
+                missing += 1
+        with cond:
+            before = len(tables)
+        start = time.perf_counter()
+        moving = []
+        k = 0
+        while time.perf_counter() - start < moving_s:
+            moving.append(send(k, 100))
+            k += 1
+            time.sleep(max(0.0, start + k * 0.02 - time.perf_counter()))
+        end = time.perf_counter()
+        time.sleep(1.0)
+        with cond:
+            during = [(t, s) for t, s in tables[before:] if t <= end]
+        known = [(t, s) for t, s in during if s in sent]
+        result = {'spacing_s': spacing_s, 'poses': poses, 'missing': missing,
+                  'latency': _percentiles(latency or [np.nan]),
+                  'moving': {'poses': len(moving), 'tables': len(during),
+                             'foreign_stamps': len(during) - len(known),
+                             'age': _percentiles([t - sent[s] for t, s in known] or [np.nan])},
+                  'node_alive': proc.poll() is None}
+    finally:
+        stop.set()
+        spinner.join(2.0)
+        executor_.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        stop_process(proc)
+        log.close()
+        reservation.release()
+    return result
+
+
 def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.0) -> dict:
     """``cdpr_record`` beside a running node while wrenches flood in at ``rate_hz``: messages
     recorded per second and bytes per message (all child processes, one ROS domain)."""

@@ -209,6 +209,11 @@ class PlatformSystem:
 
     @functools.cached_property
     def _static_stiffness(self) -> np.ndarray:
+        assembly = self.assembly
+        if assembly.decoupled is None and assembly.constant_stiffness is None:
+            # the cables' static end stiffness, shared with the other users of the pose's model
+            return self.platform_stiffness + self.cables_on_platform(
+                assembly.static_end_stiffness()[None])[0]
         return self.dynamic_stiffness(np.zeros(1))[0].real
 
     def matrices(self, dense: bool = False):

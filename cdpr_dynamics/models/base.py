@@ -155,7 +155,12 @@ class CableAssembly:
         return 3 * n * (nodes - 1)
 
     def static_end_stiffness(self) -> np.ndarray:
-        """(n, 3, 3) real stiffness of each cable at its platform end (N/m)."""
+        """(n, 3, 3) real stiffness of each cable at its platform end (N/m); computed once per
+        assembly (a pose update asks for it several times), returned as a copy."""
+        return self._static_end.copy()
+
+    @functools.cached_property
+    def _static_end(self) -> np.ndarray:
         return self.end_stiffness(np.zeros(1))[0].real
 
 

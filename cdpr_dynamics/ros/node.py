@@ -81,6 +81,8 @@ MODES_PERIOD_S = 0.5      # modes refreshed after rebuilds at most this often (a
 #                           rebuilds at 50 Hz and more; its modes change slowly)
 MODES_DUTY = 0.1          # and at most this share of a core: a refresh that took 0.5 s (the
 #                           heavy-sag 6-DOF robot at fem_sag 16) waits 5 s for the next
+INLINE_MODES_S = 0.002    # modes that took at most this are computed in the pose's callback
+#                           (no worker round trip: vibration_modes within ms of the pose)
 
 
 def _locked(method):
@@ -134,9 +136,9 @@ class DynamicsNode(Node):
         self._modal_stale = False           # a rebuild since: refreshed before diagnostics
         self._worker = Worker()             # FRF calls and modes refreshes, off the executor
         self._modes_future = None
-        self._modes_revision = -1
         self._modes_asked = -np.inf
         self._modes_period_s = MODES_PERIOD_S
+        self._modes_seconds = np.inf        # what the last modes job took
         self._rebuild_stamp_ns = 0          # the pose whose model is in use (0: the initial)
         self._modes_stamp_ns = 0            # the pose whose model the modes job had
         self._controller_outputs = None     # the start's, published once the publishers exist
@@ -144,6 +146,8 @@ class DynamicsNode(Node):
         self._background = (BackgroundStatics(self._wake)
                             if self.flat['node.rebuild'] == 'worker' else None)
         self._settings_token = 0            # bumps with the analysis settings
+        self._parameters_revision = 0       # bumps with every parameter change
+        self._modes_parameters = 0          # the parameters_revision the modes job had
         logger = self.get_logger()
         self.pose_health = InputHealth(logger.get_child('pose'), diag.ERROR)
         self.wrench_health = InputHealth(logger.get_child('wrench'), diag.WARN)
@@ -236,6 +240,7 @@ class DynamicsNode(Node):
             self.get_logger().error(f'parameter change rejected: {reason}')
             return SetParametersResult(successful=False, reason=reason)
         self.flat, self.settings = flat, settings
+        self._parameters_revision += 1
         self.frf.cache.clear()
         self.predictor.pose_tolerance_m = flat['node.pose_tolerance_m']
         self.predictor.angle_tolerance_rad = flat['node.angle_tolerance_rad']
@@ -415,10 +420,15 @@ class DynamicsNode(Node):
         self.revision += 1
         self._rebuilds += 1
         self.frf.cache.clear()
-        if self._modes_future is not None:       # its model is gone: do not wait for it
+        if self._modes_future is not None and stamp_ns is None:   # other settings: not wanted
             self._worker.cancel(self._modes_future, 'superseded by a newer model')
         self.timings.rebuild_s.append(sum(update.timings_s.values()))
         self._modal_stale = True
+        if stamp_ns is not None and time.monotonic() - self._modes_asked >= self._modes_period_s:
+            if self._modes_seconds <= INLINE_MODES_S and self._modes_future is None:
+                self._update_modal()        # cheap modes: here, published with the pose's stamp
+            else:
+                self._refresh_modal()       # at once in the worker
         self.diag_dirty = True
         self._log_model_warnings()
         self._markers_stale = True        # published by the next diagnostics tick
@@ -448,8 +458,8 @@ class DynamicsNode(Node):
         self.tensions_pub.publish(tensions_message(eq.geometry.cable_length_m,
                                                    eq.tensions.tension_n, stamp, self.frame_id))
         self.offsets_pub.publish(length_offsets_message(
-            length_offsets(eq), predictor.stretch_rate_m_s(), predictor.cable_force_n(), stamp,
-            self.frame_id))
+            length_offsets(predictor.settings.robot, eq), predictor.stretch_rate_m_s(),
+            predictor.cable_force_n(), stamp, self.frame_id))
 
     def _publish_controller(self, found: dict) -> None:
         """``vibration_modes`` and, with a shaper, ``input_shaper`` and ``notch_filter`` of a
@@ -495,9 +505,11 @@ class DynamicsNode(Node):
 
     def _update_modal(self) -> None:
         """Classified modes (the lowest platform mode), damping and time-step warnings of the
-        current model, computed here: at start, before the node serves anything."""
+        current model, computed here: at start, before the node serves anything, and after a
+        pose rebuild where they take at most INLINE_MODES_S."""
         self._modal_stale = False
         self._modes_stamp_ns = self._rebuild_stamp_ns
+        self._modes_asked = time.monotonic()
         try:
             found = modes_job(*self._modes_args())
             self._pace_modes(found['seconds'])
@@ -507,12 +519,14 @@ class DynamicsNode(Node):
 
     def _refresh_modal(self) -> None:
         """After a rebuild: the same in the worker process (:meth:`_take_modes` applies it),
-        one job at a time; the diagnostics keep the previous model's values meanwhile."""
+        one job at a time; the diagnostics keep the previous model's values meanwhile. A pose
+        rebuild asks at once where the pacing allows (else the diagnostics tick does), and a
+        job outlived by the pose still answers, stamped with the pose it was asked for."""
         if self._modes_future is not None:
             return
         self._modal_stale = False
         self._modes_stamp_ns = self._rebuild_stamp_ns
-        self._modes_revision = self.revision
+        self._modes_parameters = self._parameters_revision
         self._modes_asked = time.monotonic()
         self._modes_future = self._worker.submit('modes', *self._modes_args())
         self._modes_future.add_done_callback(self._wake)
@@ -527,7 +541,7 @@ class DynamicsNode(Node):
             self._pace_modes(found['seconds'])
         except Exception as exc:  # noqa: BLE001 - JobFailed, WorkerError: reported, kept going
             found, error = None, f'natural frequencies failed: {first_line(exc)}'
-        if self._modes_revision != self.revision:      # rebuilt since: ask again
+        if self._modes_parameters != self._parameters_revision:   # parameters changed since
             self._modal_stale = True
             return
         if found is None:
@@ -541,6 +555,7 @@ class DynamicsNode(Node):
         """The next refresh waits at least MODES_PERIOD_S and ``seconds`` / MODES_DUTY, so
         that refreshes taking ``seconds`` each use at most MODES_DUTY of a core."""
         self._modes_period_s = max(MODES_PERIOD_S, seconds / MODES_DUTY)
+        self._modes_seconds = seconds
 
     def _apply_modes(self, found: dict) -> None:
         self._platform_hz = found['platform_hz']
