@@ -34,6 +34,10 @@ def test_bench_quick_reports_every_stage(tmp_path):
     assert modes['counted']['p50_s'] > 0 and modes['eigensolver']['p50_s'] > 0
     replay = {r['method']: r for r in result['replay']}
     assert set(replay) == {'spring', 'fem'} and all(r['inputs'] > 0 for r in replay.values())
+    heavy = result['heavy_sag']        # quick mode: n = 16 only
+    assert [row['elements_per_cable'] for row in heavy['sizes']] == [16]
+    assert heavy['sizes'][0]['fem_sag_frf_p50_s'] > 0 and heavy['sizes'][0]['fem_modes_p50_s'] > 0
+    assert heavy['pose_update_fem_sag_n16']['dofs'] == 366
     under = result['underactuated']
     assert under['statics_at_equilibrium']['p50_s'] > 0 and under['geometrico_static']['p50_s'] > 0
     assert 'geometrico-static solve' in out.stdout

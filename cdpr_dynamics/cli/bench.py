@@ -211,6 +211,44 @@ def bench_underactuated(repeat: int) -> dict:
             'geometrico_static': timed(solved, 2 * repeat)}
 
 
+def bench_heavy_sag(repeat: int, quick: bool) -> dict:
+    """``config/heavy_sag_6dof.yaml``: fem_sag against fem at the same n (16 and 64; each at
+    its own equilibrium, fem_sag's sag-consistent): the modes below ``frf.f_max_hz`` (counted)
+    and the configured FRF, interleaved call by call, p50 and fem_sag over fem; and the
+    in-process pose update of fem_sag 16 along a 5 cm circle (p50/p99, stages' p50)."""
+    from cdpr_dynamics.analysis.pipeline import equilibrium_for
+    from cdpr_dynamics.dynamics.modes import modes
+    settings = load_settings(Path(default_config_path()).parent / 'heavy_sag_6dof.yaml')
+    eq = equilibrium(settings)
+    eqs = {'fem': eq, 'fem_sag': equilibrium_for(settings, eq, 'fem_sag')}
+    freqs = settings.frequencies_hz
+    rows = []
+    for n in ((16,) if quick else (16, 64)):
+        calls = {}
+        for method in ('fem', 'fem_sag'):
+            system = build_system(settings, eqs[method], method, n)
+            damping = damping_for(settings, system)
+            calls[method, 'modes'] = (lambda system=system: modes(system, settings.f_max_hz))
+            calls[method, 'frf'] = (lambda system=system, damping=damping: frequency_response(
+                system, freqs, settings.frf_force_n, damping=damping))
+        samples = {key: [] for key in calls}
+        for call in calls.values():
+            call()
+        for _ in range(max(3, repeat // 3)):
+            for key, call in calls.items():
+                start = time.perf_counter()
+                call()
+                samples[key].append(time.perf_counter() - start)
+        p50 = {key: float(np.median(values)) for key, values in samples.items()}
+        rows.append({'elements_per_cable': n, 'frf_points': int(freqs.size),
+                     **{f'{method}_{what}_p50_s': value for (method, what), value in p50.items()},
+                     'modes_sag_over_fem': p50['fem_sag', 'modes'] / p50['fem', 'modes'],
+                     'frf_sag_over_fem': p50['fem_sag', 'frf'] / p50['fem', 'frf']})
+    update = bench_node.pose_updates(settings, (('fem_sag', 16),), n=30 if quick else 300)
+    return {'config': 'heavy_sag_6dof.yaml', 'sizes': rows,
+            'pose_update_fem_sag_n16': update['fem_sag_n16']}
+
+
 def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
     """Every stage; with ``dds_config`` also the live node over DDS (a child process)."""
     repeat = 3 if quick else 30
@@ -229,7 +267,8 @@ def run(settings: Settings, quick: bool, dds_config: str | None = None) -> dict:
               'pulley_pose_update': bench_node.pulley_pose_updates(
                   Path(default_config_path()).parent / 'paper_pulleys.yaml',
                   n=30 if quick else 300),
-              'underactuated': bench_underactuated(repeat)}
+              'underactuated': bench_underactuated(repeat),
+              'heavy_sag': bench_heavy_sag(repeat, quick)}
     if dds_config:
         result['dds'] = bench_node.dds(dds_config, rates=(1000, 5000) if quick else
                                        (1000, 2000, 3000, 5000, 8000),
@@ -317,6 +356,18 @@ def summary(result: dict) -> str:
                  f"{under['statics_at_equilibrium']['p50_s'] * ms:.3f} ms, geometrico-static "
                  f"solve p50/p99 {under['geometrico_static']['p50_s'] * ms:.2f}/"
                  f"{under['geometrico_static']['p99_s'] * ms:.2f} ms")
+    heavy = result['heavy_sag']
+    for row in heavy['sizes']:
+        ms_ = {key: value * ms for key, value in row.items() if key.endswith('_p50_s')}
+        lines.append(f"heavy_sag_6dof n={row['elements_per_cable']}: modes fem_sag/fem "
+                     f"{ms_['fem_sag_modes_p50_s']:.1f}/{ms_['fem_modes_p50_s']:.1f} ms "
+                     f"(x{row['modes_sag_over_fem']:.1f}), {row['frf_points']}-point FRF "
+                     f"{ms_['fem_sag_frf_p50_s']:.2f}/{ms_['fem_frf_p50_s']:.2f} ms "
+                     f"(x{row['frf_sag_over_fem']:.1f})")
+    update = heavy['pose_update_fem_sag_n16']
+    lines.append(f"heavy_sag_6dof fem_sag n=16 pose update p50/p99 {update['p50_ms']:.2f}/"
+                 f"{update['p99_ms']:.2f} ms (stages p50: " + ', '.join(
+                     f'{k} {v:.2f}' for k, v in update['stages_p50_ms'].items()) + ' ms)')
     for row in result['replay']:
         lines.append(f"cdpr_replay offline {row['method']} n={row['elements_per_cable']} "
                      f"--order {row['order']}, 1 kHz wrenches + 50 Hz poses: "
