@@ -205,14 +205,27 @@ def unpack_response(request: GetParameters.Request, response: GetParameters.Resp
 _CLIENTS: 'weakref.WeakKeyDictionary' = weakref.WeakKeyDictionary()
 PING_FIRST_S = 0.25     # the first wait for the reply to an empty request (then doubled)
 CALL_FIRST_S = 2.0      # the first wait for the reply to a call before it is sent again
+REPLY_DEPTH = 1000      # replies a client's reader holds before DDS drops the oldest untaken
+#                         one: every client of the service receives every client's replies
+#                         (the rmw filters its own out afterwards), so rclpy's default of 10
+#                         loses a client's reply behind ten of other clients' on a busy machine
 
 
 class _Client:
     """A node's client of one service and whether a round trip has been made through it."""
 
     def __init__(self, node, service: str):
-        self.client = node.create_client(GetParameters, service)
+        self.client = node.create_client(GetParameters, service, qos_profile=reply_qos())
         self.ready = False
+
+
+def reply_qos():
+    """The QoS of this module's clients: rclpy's services default with a reply reader deep
+    enough (:data:`REPLY_DEPTH`) for the replies that concurrent clients receive at once."""
+    from rclpy.qos import QoSProfile, qos_profile_services_default
+    return QoSProfile(history=qos_profile_services_default.history, depth=REPLY_DEPTH,
+                      reliability=qos_profile_services_default.reliability,
+                      durability=qos_profile_services_default.durability)
 
 
 def _client(node, service: str) -> _Client:
