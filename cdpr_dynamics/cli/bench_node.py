@@ -233,13 +233,29 @@ def _ros_session(tag: str):
     return reservation, env
 
 
+def _spin_in_background(node):
+    """Spin ``node`` on a daemon thread; the function that stops it and its executor."""
+    from rclpy.executors import SingleThreadedExecutor
+    executor_ = SingleThreadedExecutor()
+    executor_.add_node(node)
+    stop = threading.Event()
+    spinner = threading.Thread(target=lambda: [executor_.spin_once(0.05)
+                                               for _ in iter(stop.is_set, True)], daemon=True)
+    spinner.start()
+
+    def halt() -> None:
+        stop.set()
+        spinner.join(2.0)
+        executor_.shutdown()
+    return halt
+
+
 def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
         latency_s: float = 5.0, frf_call_points: int = FRF_CALL_POINTS) -> dict:
     """Latency and sustained rate over DDS against a dynamics_node child process."""
     import rclpy
     from geometry_msgs.msg import Vector3Stamped, WrenchStamped
     from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import qos_profile_sensor_data
     from rclpy.signals import SignalHandlerOptions
@@ -275,12 +291,7 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
         node.create_subscription(Vector3Stamped, 'predicted_displacement', on_prediction, 1000)
         node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
         pub = node.create_publisher(WrenchStamped, 'wrench', qos_profile_sensor_data)
-        executor_ = SingleThreadedExecutor()
-        executor_.add_node(node)
-        stop = threading.Event()
-        spinner = threading.Thread(target=lambda: [executor_.spin_once(0.05)
-                                                   for _ in iter(stop.is_set, True)], daemon=True)
-        spinner.start()
+        halt = _spin_in_background(node)
 
         def wrench_status(after):
             with cond:
@@ -423,9 +434,7 @@ def dds(config, rates=(1000, 2000, 3000, 5000, 8000), flood_s: float = 3.0,
             result['sustained_rate_hz'] = max(kept) if kept else 0
             result['max_processed_hz'] = max(f['processed_hz'] for f in floods)
         finally:
-            stop.set()
-            spinner.join(2.0)
-            executor_.shutdown()
+            halt()
             node.destroy_node()
             rclpy.try_shutdown()
             if proc is not None:
@@ -450,7 +459,6 @@ def modes_latency(config, parameters: dict | None = None, poses: int = 20,
     and their age (receipt minus the publishing of the pose they carry)."""
     import rclpy
     from geometry_msgs.msg import PoseStamped
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
     from rclpy.signals import SignalHandlerOptions
@@ -482,12 +490,7 @@ def modes_latency(config, parameters: dict | None = None, poses: int = 20,
     node.create_subscription(Float64MultiArray, 'vibration_modes', on_table,
                              QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL))
     pub = node.create_publisher(PoseStamped, 'pose', qos_profile_sensor_data)
-    executor_ = SingleThreadedExecutor()
-    executor_.add_node(node)
-    stop = threading.Event()
-    spinner = threading.Thread(target=lambda: [executor_.spin_once(0.05)
-                                               for _ in iter(stop.is_set, True)], daemon=True)
-    spinner.start()
+    halt = _spin_in_background(node)
     sent = {}
     t_stamp = 1000.0
 
@@ -536,9 +539,7 @@ def modes_latency(config, parameters: dict | None = None, poses: int = 20,
                              'age': _percentiles([t - sent[s] for t, s in known] or [np.nan])},
                   'node_alive': proc.poll() is None}
     finally:
-        stop.set()
-        spinner.join(2.0)
-        executor_.shutdown()
+        halt()
         node.destroy_node()
         rclpy.try_shutdown()
         stop_process(proc)
