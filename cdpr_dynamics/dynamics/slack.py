@@ -176,7 +176,7 @@ class CompressionFreeCables:
             return pull, self.static_force - t.T @ (pull + damper * along) \
                 + damper.sum() * qdot, parts
         force = t * (pull + damper * along)[:, None] - damper[:, None] * d_dot
-        rot = (pull @ self._rotation).reshape(6, 6) + self.load_rotation
+        rot = (pull @ self._rotation).reshape(self.nd, self.nd) + self.load_rotation
         rotated = q + dk * qdot
         restoring = self.static_force - self._g2.T @ force.reshape(-1) + rot @ rotated
         return pull, restoring, parts[:7] + (rot, rotated)
