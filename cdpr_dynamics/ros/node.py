@@ -514,7 +514,7 @@ class DynamicsNode(Node):
             found = modes_job(*self._modes_args())
             self._pace_modes(found['seconds'])
             self._apply_modes(found)
-        except NUMERIC_ERRORS as exc:
+        except Exception as exc:  # noqa: BLE001 - as from the worker: reported, kept going
             self._modal_warnings = [f'natural frequencies failed: {first_line(exc)}']
 
     def _refresh_modal(self) -> None:
