@@ -31,6 +31,7 @@ setup(
             'cdpr_record = cdpr_dynamics.cli:cdpr_record',
             'cdpr_demo = cdpr_dynamics.cli:cdpr_demo',
             'cdpr_tradeoff = cdpr_dynamics.cli:cdpr_tradeoff',
+            'cdpr_estimate_table = cdpr_dynamics.cli:cdpr_estimate_table',
             'cdpr_replay = cdpr_dynamics.cli:cdpr_replay',
             'cdpr_workspace = cdpr_dynamics.cli:cdpr_workspace',
             'cdpr_calibrate = cdpr_dynamics.cli:cdpr_calibrate',

@@ -439,3 +439,23 @@ def test_pulleys_on_the_suspended_configs(name):
     k = pipeline.build_system(s, eq, 'spring').static_stiffness()
     assert np.all(np.abs(balance_jacobian(s, eq) - k).max(axis=0) < 1e-6 * np.abs(k).max(axis=0))
     assert np.all(np.linalg.eigvalsh(k) > 0)
+
+
+def test_crossing_is_judged_on_the_free_spans_from_the_exit_points():
+    """Two cables whose lines from their anchors D_i cross 3.4 cm below them: over point
+    anchors they cross (refused); over 0.1 m pulleys each leaves its groove at an exit point
+    7 cm lower and the free spans from there diverge (accepted)."""
+    s = load_settings(CONFIG / 'paper_cdpr.yaml')
+    for radius in (0.1, 0.0):
+        robot = Robot('world', np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]),
+                      np.array([[1.0, 0.0, -1.0], [-1.0, 0.0, -1.0]]), 5.0, np.diag([0.1] * 3),
+                      np.array([0.0, 0.0, -9.81]), pulley_axes=np.array([[0.0, 0.0, -1.0]] * 2),
+                      pulley_radii_m=np.full(2, radius))
+        geo = geometry(robot, [0.0, 0.0, 0.0])
+        settings = dataclasses.replace(s, robot=robot)
+        if radius:
+            assert np.all(geo.pulleys.exit_m[:, 2] < -0.07)
+            pipeline._check_design(settings, geo)
+        else:
+            with pytest.raises(pipeline.AnalysisError, match='cables 0 and 1 cross'):
+                pipeline._check_design(settings, geo)

@@ -92,6 +92,32 @@ def test_bifilar_without_an_offset_centre_of_mass_is_refused_as_unstable_about_i
         equilibrium(s)
 
 
+@pytest.mark.parametrize('half_span_m, length_m, drop_m', [(0.2, 1.0, 0.25), (0.35, 2.4, 0.1)])
+def test_bifilar_pendulum_with_its_centre_of_mass_below_the_attachments(half_span_m, length_m,
+                                                                        drop_m):
+    """Two parallel vertical cables of length L at x = +-d/2, the centre of mass h below the
+    line through the attachments. Lagrange, inextensible cables: the twist about the vertical
+    through the centre of mass, omega^2 = m g d^2 / (4 I_zz L); the swing along x translates the
+    platform (a parallelogram), g / L; the swing along y (the line's displacement y on its
+    circle of radius L) and the rotation theta about the line couple: T = m (y' + h theta')^2/2
+    + I_xx theta'^2 / 2 (the parallel-axis term m h^2 in M), V = m g (y^2 / (2L) + h theta^2/2).
+    The spring model's axial stiffness (EA/L ~ 1e6 N/m) shifts them by < 1e-4."""
+    mass, ixx, izz = 3.0, 0.04, 0.07
+    attachments = np.array([[-half_span_m, 0.0, 0.0], [half_span_m, 0.0, 0.0]])
+    s = settings_of(attachments + [0.0, 0.0, length_m], attachments, mass_kg=mass,
+                    inertia=(ixx, 0.05, izz, 0.0, 0.0, 0.0),
+                    **{'robot.center_of_mass_m': [0.0, 0.0, -drop_m]})
+    eq = equilibrium(s)
+    assert eq.balance is not None and not eq.balance.moved
+    assert_allclose(eq.tensions.tension_n, mass * G / 2.0, rtol=1e-12)
+    coupled_m = np.array([[mass, mass * drop_m], [mass * drop_m, mass * drop_m ** 2 + ixx]])
+    coupled_k = np.diag([mass * G / length_m, mass * G * drop_m])
+    coupled = np.sqrt(np.linalg.eigvals(np.linalg.solve(coupled_m, coupled_k)).real)
+    twist = math.sqrt(mass * G * (2 * half_span_m) ** 2 / (4 * izz * length_m))
+    expected = np.sort(np.r_[coupled, math.sqrt(G / length_m), twist]) / (2 * math.pi)
+    assert_allclose(lowest(s, eq, 4), expected, rtol=1e-4)
+
+
 def test_bifilar_twist_is_held_by_its_geometric_stiffness():
     """The bifilar's twist stiffness in the loaded stiffness is m g R^2 / L (closed form)."""
     radius, length, mass = 0.2, 1.3, 3.0

@@ -68,8 +68,9 @@ def _check_design(settings: Settings, geo: Geometry) -> None:
                             'platform is not held in that direction')
     if not settings.robot.point_mass:   # a point mass's cables all end at one point
         clearance = 2.0 * np.sqrt(settings.cable.area_m2 / np.pi)
-        reason = cable_crossing(settings.robot.anchors_m, geo.position_m + geo.lever_m,
-                                clearance)
+        attachments = geo.position_m + geo.lever_m
+        # the free spans: from each attachment to its exit point (the anchor without a pulley)
+        reason = cable_crossing(attachments + geo.chord_m, attachments, clearance)
         if reason:
             raise AnalysisError(reason)
 

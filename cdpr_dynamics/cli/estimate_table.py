@@ -1,6 +1,6 @@
 """``auto``'s estimates against the measured errors: the table that sets ``selection.SAFETY``.
 
-    python -m cdpr_dynamics.cli.estimate_table [CONFIG ...]
+    cdpr_estimate_table [CONFIG ...] [--json PATH]
 
 For each robot (default :data:`ROBOTS`) and each model of :data:`MODELS`: the estimated
 (:class:`~cdpr_dynamics.selection.estimates.Estimator`) and the measured
@@ -8,12 +8,15 @@ For each robot (default :data:`ROBOTS`) and each model of :data:`MODELS`: the es
 the band
 and of the damped FRF, over each robot's [0, ``frf.f_max_hz``], and their ratio
 measured / estimated (the larger of the two; estimates and measurements not capped, a missed
-mode 100 %). Prints a Markdown table and the largest ratio; exit status 1 with one line on a
-bad config, 130 on Ctrl-C.
+mode 100 %). Prints a Markdown table and the largest ratio; ``--json`` also writes the entries
+(:data:`TABLE` is the committed one, which the docs show and the tests recompute); exit status 1
+with one line on a bad config, 130 on Ctrl-C.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import math
 import sys
 from dataclasses import dataclass
@@ -29,7 +32,9 @@ from cdpr_dynamics.selection.auto import SAFETY, SelectionError
 
 ROOT = Path(__file__).resolve().parents[2]
 ROBOTS = ('config/paper_cdpr.yaml', 'config/low_tension_cdpr.yaml', 'test/data/rigid_cdpr.yaml',
-          'test/data/sagging_6dof.yaml', 'test/data/cogiro_heavy_sag.yaml')
+          'test/data/sagging_6dof.yaml', 'test/data/cogiro_heavy_sag.yaml',
+          'config/suspended_3cable.yaml', 'config/suspended_4cable.yaml')
+TABLE = ROOT / 'doc' / 'estimates' / 'table.json'   # the committed table of ROBOTS x MODELS
 MODELS = (('spring', 1), ('fem', 4), ('fem', 8), ('fem', 16), ('catenary_exact', 1),
           ('fem_sag', 4), ('fem_sag', 8), ('fem_sag', 16))
 
@@ -88,11 +93,24 @@ def markdown(entries: list[Entry]) -> str:
     return '\n'.join(lines)
 
 
+def write_json(entries: list[Entry], path) -> None:
+    """The entries as JSON: ``{"safety": SAFETY, "entries": [{field: value}, ...]}``."""
+    rows = [dataclasses.asdict(e) for e in entries]
+    Path(path).write_text(json.dumps({'safety': SAFETY, 'entries': rows}, indent=1) + '\n')
+
+
+def read_json(path=TABLE) -> list[Entry]:
+    """The entries of a file of :func:`write_json`."""
+    return [Entry(**row) for row in json.loads(Path(path).read_text())['entries']]
+
+
 @interruptible('estimate_table')
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m cdpr_dynamics.cli.estimate_table',
+    parser = argparse.ArgumentParser(prog='cdpr_estimate_table',
                                      description=plain(__doc__.split('\n')[0]))
-    parser.add_argument('configs', nargs='*', help='robots (default: the four of the table)')
+    parser.add_argument('configs', nargs='*', help='robots (default: the ROBOTS of the table)')
+    parser.add_argument('--json', metavar='PATH', help='also write the entries as JSON (the '
+                        f'docs\' table: {TABLE.relative_to(ROOT)})')
     args = parser.parse_args(argv)
     entries = []
     try:
@@ -102,6 +120,13 @@ def main(argv=None) -> int:
         print(f'estimate_table: error: {str(exc).splitlines()[0]}', file=sys.stderr)
         return 1
     print(markdown(entries))
+    if args.json:
+        try:
+            write_json(entries, args.json)
+        except OSError as exc:
+            print(f'estimate_table: error: cannot write {args.json}: {exc.strerror}',
+                  file=sys.stderr)
+            return 1
     return 0
 
 

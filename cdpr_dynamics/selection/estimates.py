@@ -6,7 +6,8 @@
   the model does not have counts 100 % (massless models miss every cable mode, fem with n
   elements has only n - 1 per cable and direction);
 * FRF error: the largest relative error max_f |A(f) - A_ref(f)| / |A_ref(f)| of the damped
-  complex response of the centroid over the FRF sweep (it bounds the error of |A|).
+  complex response of the centroid over the FRF sweep (it bounds the error of |A|), to the
+  configured force and to unit forces along x, y and z (:func:`frf_loads`).
 
 Estimates are not capped: 3.8 means 380 % (a massless model on a heavy-sag robot); only the
 charts of ``cdpr_tradeoff`` cap them. They are cheap: closed forms per cable
@@ -88,6 +89,26 @@ def band_damping(settings, eq) -> Damping:
     (:func:`cdpr_dynamics.dynamics.system.configured_damping`)."""
     spring = platform_system(settings.robot, eq.geometry, models.build('spring', eq.cables))
     return configured_damping(settings, spring)
+
+
+def frf_loads(settings, platform_dofs: int) -> np.ndarray:
+    """(platform_dofs, 4) the loads FRF errors are taken over: the configured force
+    (``frf.force_n``; z where it is zero) and unit forces along x, y and z (the node sees any
+    direction)."""
+    loads = np.zeros((platform_dofs, 4))
+    loads[:3, 0] = settings.frf_force_n
+    loads[:3, 1:] = np.eye(3)
+    if not np.any(loads[:, 0]):
+        loads[2, 0] = 1.0
+    return loads
+
+
+def load_responses(dynamic_stiffness: np.ndarray, settings) -> np.ndarray:
+    """(nf, nd, 4) responses Z^-1 F to the loads of :func:`frf_loads` for Z (nf, nd, nd)."""
+    nf, nd = dynamic_stiffness.shape[:2]
+    loads = np.broadcast_to(frf_loads(settings, nd).astype(complex), (nf, nd, 4))
+    with np.errstate(all='ignore'):
+        return np.linalg.solve(dynamic_stiffness, loads)
 
 
 class Estimator:
@@ -191,6 +212,17 @@ class Estimator:
     def _sag_error_frf(self):
         return self.sag_error(self.lam)
 
+    def _coarse_sag_frf_error(self, n: int) -> np.ndarray:
+        """fem_sag's end stiffness error on the FRF sweep for n < 2 SAG_ELEMENTS, from the model
+        itself: S_sag(n) - S_sag(2 n0) plus the estimated error of n = 2 n0
+        (``sag_error`` / (2 n0)^2 and the straight chain's S_fem(2 n0) - S_dsm). Below 2 n0 the
+        n^-2 law extrapolates (4x too high at n = 4 on heavy sag)."""
+        n0 = 2 * SAG_ELEMENTS
+        fine = self._sag_chains[1].end_stiffness(self.lam)
+        coarse = models.build('fem_sag', self.eq.cables, n).end_stiffness(self.lam)
+        return (coarse - fine + self._sag_error_frf / n0 ** 2
+                + self._sag_chains[3].end_stiffness(self.lam) - self._straight_frf_ends)
+
     def _scene_of(self, method: str, straight):
         """(scene, precomputed straight end stiffness or None, rotational geometric stiffness
         less the truth's) of the statics ``method`` runs with: the sag-consistent scene for
@@ -211,8 +243,11 @@ class Estimator:
         if not self.damped or self._truth_frf is None:
             return 0.0
         sc, straight, geometric = self._scene_of(method, self._straight_frf_ends)
-        ends = model_end_stiffness(sc, method, n, self.lam, straight,
-                                   self._sag_error_frf if method == 'fem_sag' else None)
+        if method == 'fem_sag' and n < 2 * SAG_ELEMENTS and self._sag_chains is not None:
+            ends = self._truth_frf_ends + self._coarse_sag_frf_error(n)
+        else:
+            ends = model_end_stiffness(sc, method, n, self.lam, straight,
+                                       self._sag_error_frf if method == 'fem_sag' else None)
         scale = 1.0 + 1j * self.omega * self.damping.stiffness_factor
         dz = scale[:, None, None] * (self.truth_system.cables_on_platform(
             ends - self._truth_frf_ends) + geometric)
@@ -226,16 +261,8 @@ class Estimator:
 
     @functools.cached_property
     def _truth_response(self) -> np.ndarray:
-        """(nf, nd, 4) truth responses to the configured force and unit forces x, y, z."""
-        nd = self.truth_system.platform_dofs
-        loads = np.zeros((nd, 4))
-        loads[:3, 0] = self.settings.frf_force_n
-        loads[:3, 1:] = np.eye(3)
-        if not np.any(loads[:, 0]):
-            loads[2, 0] = 1.0
-        with np.errstate(all='ignore'):
-            return np.linalg.solve(self._truth_frf, np.broadcast_to(
-                loads.astype(complex), (self.omega.size, nd, 4)))
+        """(nf, nd, 4) truth responses to the loads of :func:`frf_loads`."""
+        return load_responses(self._truth_frf, self.settings)
 
     def platform_mode_error(self, method: str, n: int) -> float:
         """Relative shift of the platform modes in the band (undamped, uncapped), first order:

@@ -5,7 +5,8 @@ negligible (its estimated effect below a tenth of ``model.tolerance``), otherwis
 n and 2n elements, Richardson-extrapolated (its n^-2 error removed). :func:`measure_error`
 solves a model (FRF on the sweep, modes in the band) and compares: natural frequencies paired in
 ascending order (a missed mode 100 %) and the damped complex FRF of the centroid, max relative
-error over the sweep.
+error over the sweep and over the loads the estimates cover (the configured force and unit
+forces along x, y, z: :func:`cdpr_dynamics.selection.estimates.frf_loads`).
 """
 from __future__ import annotations
 
@@ -17,8 +18,9 @@ import numpy as np
 from cdpr_dynamics import models
 from cdpr_dynamics.selection.closed_forms import Scene, SelectionError, largest_phase
 from cdpr_dynamics.dynamics.system import (DENSE_EIGEN_DOFS, Damping, PlatformSystem,
-                                           frequency_response, platform_system)
-from cdpr_dynamics.selection.estimates import MISSED, Estimator, band_damping, percent
+                                           platform_system)
+from cdpr_dynamics.selection.estimates import (MISSED, Estimator, band_damping, load_responses,
+                                               percent)
 from cdpr_dynamics.dynamics.modes import natural_frequencies
 from cdpr_dynamics.mechanics.statics import equilibrium_for
 
@@ -34,7 +36,8 @@ class Reference:
     """The solution models are measured against, on the band [0, f_max].
 
     ``frequencies_hz`` holds every natural frequency up to ``BEYOND_BAND * f_max`` (ascending),
-    ``response`` the damped complex FRF of the centroid (nf, 3) on ``frequency_grid_hz``;
+    ``response`` the damped complex FRF of the centroid (nf, 3, 4: per load of
+    :func:`~cdpr_dynamics.selection.estimates.frf_loads`) on ``frequency_grid_hz``;
     ``uncertainty`` is the estimated relative error of the reference itself.
     """
 
@@ -56,7 +59,7 @@ class Reference:
 
 @dataclass(frozen=True, eq=False)
 class Solution:
-    """One model's answer: its system, FRF (nf, 3) complex and lowest natural frequencies."""
+    """One model's answer: its system, FRF (nf, 3, 4) complex and lowest natural frequencies."""
 
     system: PlatformSystem
     response: np.ndarray
@@ -92,8 +95,8 @@ def solve(settings, eq, method: str, n: int, frequency_grid_hz, damping: Damping
     """
     eq = equilibrium_for(settings, eq, method)       # sag-aware models: sag-consistent statics
     system = platform_system(settings.robot, eq.geometry, models.build(method, eq.cables, n))
-    response = frequency_response(system, frequency_grid_hz, settings.frf_force_n,
-                                  damping=damping).response[:, :3]
+    omega = 2.0 * math.pi * np.asarray(frequency_grid_hz, dtype=float)
+    response = load_responses(system.dynamic_stiffness(omega, damping), settings)[:, :3]
     if system.assembly.blocks is None:
         freqs = natural_frequencies(system, 0, f_max_hz)
         if freqs.size < at_least + 1:
@@ -127,7 +130,8 @@ def pair_errors(frequencies_hz, reference_hz, f_max_hz: float) -> tuple[float, i
 
 
 def frf_error(response, reference_response) -> float:
-    """max_f |A(f) - A_ref(f)| / |A_ref(f)| of complex centroid responses (nf, 3)."""
+    """max_f |A(f) - A_ref(f)| / |A_ref(f)| of complex centroid responses (nf, 3) or
+    (nf, 3, loads), the largest over the loads too."""
     diff = np.linalg.norm(np.asarray(response) - reference_response, axis=1)
     ref = np.linalg.norm(reference_response, axis=1)
     with np.errstate(all='ignore'):

@@ -9,6 +9,8 @@ from the code or from committed data, so the text can never drift from what it d
 - ``cdpr:benchmarks``: the tables of every ``doc/benchmarks/*.json`` written by
   ``cdpr_bench --json``; ``cdpr:tradeoff``: of every ``doc/benchmarks/tradeoff_*.csv`` written by
   ``cdpr_tradeoff --csv``;
+- ``cdpr:estimates``: ``auto``'s estimated against measured errors, from
+  ``doc/estimates/table.json`` written by ``cdpr_estimate_table --json``;
 - ``cdpr:tests``: each test module and the first paragraph of its docstring;
 - ``cdpr:api``: an ``automodule`` per module of the packages ``cdpr_dynamics`` and
   ``msg_adapters``, grouped by layer;
@@ -212,6 +214,12 @@ def other_pages(text: str) -> str:
     return '\n'.join(['```{toctree}', ':maxdepth: 1', ':caption: Topics', ''] + rest + ['```'])
 
 
+def estimate_table() -> str:
+    """The estimator's table from the committed ``doc/estimates/table.json``."""
+    from cdpr_dynamics.cli import estimate_table as tool
+    return tool.markdown(tool.read_json(DOC / 'estimates' / 'table.json'))
+
+
 def generated(kind: str, text: str = '') -> str:
     """The Markdown for marker ``kind`` of a page whose source is ``text``."""
     from cdpr_dynamics.analysis import config
@@ -220,6 +228,7 @@ def generated(kind: str, text: str = '') -> str:
         'node-parameters': lambda: parameter_table(config.NODE_PARAMETERS),
         'benchmarks': benchmark_tables,
         'tradeoff': tradeoff_tables,
+        'estimates': estimate_table,
         'tests': test_list,
         'api': api_reference,
         'other-pages': lambda: other_pages(text),
