@@ -43,6 +43,7 @@ def test_every_measured_error_is_within_safety_times_its_estimate(table):
     assert 1.0 <= worst <= SAFETY <= 1.5 * worst, worst
 
 
+@pytest.mark.slow
 def test_the_committed_table_is_the_recomputed_one(table):
     """doc/estimates/table.json (written by cdpr_estimate_table --json, shown by the docs)
     holds the same robots, models and errors as the table computed now."""
@@ -57,6 +58,7 @@ def test_the_committed_table_is_the_recomputed_one(table):
                                                        abs=1e-9), (new, name)
 
 
+@pytest.mark.slow
 def test_the_table_round_trips_through_json(tmp_path, capsys):
     rows = [estimate_table.Entry('r', 'fem', 4, 75, 0.1, 0.02, 0.11, 0.01, 1e-6)]
     estimate_table.write_json(rows, tmp_path / 't.json')

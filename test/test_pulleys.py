@@ -359,6 +359,7 @@ def test_clamped_roots_solve_the_anchor_spring_condition():
         assert members.fixed_end_mode_count([w])[0] == expected
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('config', ['paper_pulleys', 'suspended_3cable'])
 def test_dsm_frequencies_with_pulleys_are_the_limit_of_fem(config):
     """dsm's counted frequencies with anchor ends against fem's dense eigenvalues (other
