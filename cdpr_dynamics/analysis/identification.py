@@ -299,7 +299,12 @@ def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 20):
     with np.errstate(over='ignore', invalid='ignore'):   # a growing trial: refused
         for _ in range(steps):          # Levenberg-Marquardt
             normal = jac.T @ jac
-            dx = np.linalg.solve(normal + mu * np.diag(np.diag(normal)), -jac.T @ r)
+            # a pole whose amplitude has vanished has a zero column: damped by the mean scale
+            scale_diag = np.diag(normal) + 1e-9 * np.trace(normal) / normal.shape[0]
+            try:
+                dx = np.linalg.solve(normal + mu * np.diag(scale_diag), -jac.T @ r)
+            except np.linalg.LinAlgError:
+                break
             r_new, a_new, coef_new = solve(x + dx)
             if r_new @ r_new < r @ r:
                 done = r @ r - r_new @ r_new < 1e-10 * (r @ r)
