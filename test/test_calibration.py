@@ -130,6 +130,7 @@ def test_modes_table_round_trip_and_errors(tmp_path):
 
 # --------------------------------------------------------------------------- campaigns
 
+@pytest.mark.slow
 def test_rigid_platform_stiffness_inertia_and_damping_recovered(tmp_path):
     """Rigid robot (6 DOF, spring model): EA +15 %, inertia changed, Rayleigh damping; the
     fit starts from the config's values, 30 % of the poses held out."""
@@ -172,6 +173,7 @@ def test_point_mass_paper_robot_stiffness_recovered():
     assert report['rms_error_pct']['holdout']['after'] < 1.5
 
 
+@pytest.mark.slow
 def test_sagging_robot_with_a_sag_aware_model_recovered():
     """Heavy-sag robot with fem_sag: EA and the inertia diagonal; the sag makes the platform
     modes depend on EA through the catenary, not as EA/L."""
@@ -250,6 +252,7 @@ def test_calibrated_yaml_replaces_and_adds_values_keeping_the_rest(tmp_path):
     assert flat['cable.area_m2'] == read_params_file(RIGID)['cable.area_m2']
 
 
+@pytest.mark.slow
 def test_cli_fit_writes_yaml_report_and_figures(tmp_path, capsys):
     config = read_params_file(RIGID)
     config['model.method'] = 'spring'
@@ -293,6 +296,7 @@ def test_cli_fit_errors_are_one_line(tmp_path, capsys, args, message):
     assert not (tmp_path / 'out.yaml').exists()
 
 
+@pytest.mark.slow
 def test_centre_of_mass_and_inertia_recovered():
     """Rigid robot with its centre of mass off the platform frame's origin: the centre of mass
     within 5 mm and the inertia diagonal within 10 %, from 6 modes a pose."""
@@ -314,6 +318,7 @@ def test_centre_of_mass_and_inertia_recovered():
     assert held['before'] > 2.0 and held['after'] < 1.5, held
 
 
+@pytest.mark.slow
 def test_one_pulley_radius_shared_by_every_pulley_recovered(tmp_path, capsys):
     """The rigid robot over the pulleys of paper_pulleys.yaml (1 m winch side), all of one
     radius: ``robot.pulley_radii_m[*]`` fits that one radius beside EA (true 65 mm, start

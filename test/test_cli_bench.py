@@ -74,6 +74,7 @@ def test_slack_rate_accounts_for_every_wrench_of_the_demo_load(ros_env):
     assert 0.0 < row['slack_time_s'] <= 1.0
 
 
+@pytest.mark.slow
 def test_bench_calibration_quick_fits_and_identifies(tmp_path):
     """cdpr_bench --calibration --quick: the fit row fits its 9 parameters to the noise level,
     the identify row reads its MCAP record back and finds the decay's modes."""

@@ -125,6 +125,7 @@ def test_messy_record_motion_gaps_and_large_oscillation():
     assert result.stretches[0].start_s > 1.5       # not in the motion it started in
 
 
+@pytest.mark.slow
 def test_imu_record_identified():
     """Angular velocity and acceleration of the same decay: same modes, directions too."""
     settings = soft_robot()
@@ -223,6 +224,7 @@ print(json.dumps({{'found': [m.frequency_hz for s in result.stretches for m in s
 '''
 
 
+@pytest.mark.slow
 def test_three_close_modes_identified_without_a_singular_step():
     """The paper's point mass, softened: three modes within 1.5 % (3.27-3.32 Hz), 2 % damping.
     With one BLAS thread (as cdpr_calibrate runs) a Levenberg-Marquardt step on this record
