@@ -26,9 +26,20 @@ MASSLESS = ('spring', 'catenary', 'catenary_exact')
 
 
 @pytest.fixture(scope='module')
-def table():
-    return {Path(p).stem: estimate_table.robot_entries(Path(p).stem, load_settings(ROOT / p))
-            for p in estimate_table.ROBOTS}
+def solved():
+    """Per robot of the table: its settings, equilibrium and reference solution."""
+    out = {}
+    for path in estimate_table.ROBOTS:
+        settings = load_settings(ROOT / path)
+        eq = equilibrium(settings)
+        out[path] = settings, eq, reference_solution(settings, eq)
+    return out
+
+
+@pytest.fixture(scope='module')
+def table(solved):
+    return {Path(p).stem: estimate_table.robot_entries(Path(p).stem, s, eq=eq, reference=ref)
+            for p, (s, eq, ref) in solved.items()}
 
 
 @pytest.mark.slow
@@ -85,13 +96,11 @@ def test_the_estimates_are_not_capped(table):
 
 @pytest.mark.slow
 @pytest.mark.parametrize('path', estimate_table.ROBOTS)
-def test_auto_within_the_default_budget(table, path):
+def test_auto_within_the_default_budget(table, solved, path):
     """auto's pick (model.tolerance 1 %, model.max_dofs 600) measures within the tolerance
     where it says it does; where it says nothing within the budget does (heavy sag), it is
     not massless and measures better than every model of the table within the budget."""
-    settings = load_settings(ROOT / path)
-    eq = equilibrium(settings)
-    reference = reference_solution(settings, eq)
+    settings, eq, reference = solved[path]
     choice = choose_model(settings, eq, damping=reference.damping)
     assert choice.dofs <= settings.max_dofs
     measured = measure_error(settings, eq, choice.method, choice.elements_per_cable, reference)

@@ -62,10 +62,12 @@ class Entry:
         return max((m / e if e > 0 else math.inf) if m > self.floor else 0.0 for m, e in pairs)
 
 
-def robot_entries(robot: str, settings, models=MODELS) -> list[Entry]:
-    """The table's rows for one robot (its equilibrium, band and damping as configured)."""
-    eq = equilibrium(settings)
-    reference = reference_solution(settings, eq)
+def robot_entries(robot: str, settings, models=MODELS, eq=None,
+                  reference=None) -> list[Entry]:
+    """The table's rows for one robot (its equilibrium, band and damping as configured; the
+    equilibrium and the reference solved here unless given)."""
+    eq = equilibrium(settings) if eq is None else eq
+    reference = reference_solution(settings, eq) if reference is None else reference
     estimator = Estimator(settings, eq, reference.f_max_hz, reference.damping)
     floor = max(10.0 * reference.uncertainty, 1e-6)
     rows = []
