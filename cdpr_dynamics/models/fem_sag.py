@@ -113,12 +113,15 @@ def planar_chains(ee):
 
 def _series_planar(planar, axial, transverse, mass, lam) -> np.ndarray:
     """:func:`series_end_stiffness` of planar chains: the same recursion on the in-plane 2x2
-    flexibility (3 components) and the scalar one along n, then S in the world frame."""
+    flexibility (3 components) and the scalar one along n, then S in the world frame.
+
+    For a 2x2 P, P adj(I - 6 c P) = P - 6 c det(P) I (Cayley-Hamilton), so
+    G = (P - 6 c det P I) / (1 - 6 c (tr P - 6 c det P))."""
     basis, ee2 = planar
     lam = np.asarray(lam).ravel()
     dtype = float if np.isrealobj(lam) else complex
     c = mass[:, None] * lam.astype(dtype)[None, :]                       # (ncab, nl)
-    minus_6c = -6.0 * c
+    six_c = 6.0 * c
     axial_flexibility = 1.0 / (axial[:, None] + c)
     ee2 = ee2[..., None].astype(dtype)            # columns of c's type: no mixed broadcasts
     transverse = transverse[..., None].astype(dtype)
@@ -129,19 +132,16 @@ def _series_planar(planar, axial, transverse, mass, lam) -> np.ndarray:
         p0 = g0 + delta * ee2[0, j] + beta
         p1 = g1 + delta * ee2[1, j]
         p2 = g2 + delta * ee2[2, j] + beta
-        q0 = minus_6c * p0 + 1.0                # Q = I - 6 c P, G = P adj(Q) / det(Q)
-        q1 = minus_6c * p1
-        q2 = minus_6c * p2 + 1.0
         pn = gn + beta
-        qn = minus_6c * pn + 1.0
-        det = q0 * q2 - q1 * q1
-        inv = 1.0 / (det * qn)                  # one reciprocal for 1/det(Q) and 1/qn
+        e = six_c * (p0 * p2 - p1 * p1)          # 6 c det P
+        det = 1.0 - six_c * (p0 + p2 - e)        # det(I - 6 c P)
+        qn = 1.0 - six_c * pn
+        inv = 1.0 / (det * qn)                   # one reciprocal for 1/det and 1/qn
         gn = pn * det * inv
         inv *= qn
-        p1q1 = p1 * q1
-        g0 = (p0 * q2 - p1q1) * inv
-        g1 = (p1 * q0 - p0 * q1) * inv
-        g2 = (p2 * q0 - p1q1) * inv
+        g0 = (p0 - e) * inv
+        g1 = p1 * inv
+        g2 = (p2 - e) * inv
     inv_det = 1.0 / (g0 * g2 - g1 * g1)
     three_c = 3.0 * c
     parts = np.stack([g2 * inv_det + three_c, -g1 * inv_det, g0 * inv_det + three_c,
