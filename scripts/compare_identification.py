@@ -13,8 +13,9 @@ resampling, rest detection, decay spans) and only the identification of each dec
 * ``pyoma2-ssi-dat``, ``pyoma2-ssi-cov``: pyOMA-2's SSI, data-driven (13 block rows, orders
   up to 40, its poles picked by its automatic clustering ``Kvaale``) and covariance-driven
   (60 block rows, orders up to 60, clustering ``hdbscan``): of 18 settings tried on the first
-  two cases (block rows 13, 30, 60; its six automatic clusterings), those that found the most
-  true modes with the fewest spurious ones;
+  two cases (data-driven with 13 and 30 block rows, covariance-driven with 60, each with its
+  six automatic clusterings), those that found the most true modes with the fewest spurious
+  ones;
 * ``sdypy-lscf``: sdypy-EMA's LSCF on the decay's spectrum (a free decay's Fourier transform
   has the poles of the FRF), polynomial orders up to 60, poles picked stable over the orders
   as ``own`` picks ERA's (sdypy-EMA picks them by hand or near given frequencies).
@@ -128,7 +129,7 @@ def pyoma2_ssi(variant: str):
                                           freqlim=(options.f_min_hz, f_max)))
             try:
                 ssi.run_clustering('auto')
-            except Exception:                   # no cluster at all: nothing identified
+            except Exception:       # its clustering refuses too few poles: no mode found
                 return []
             found = ssi.result.clustering_results['auto']
         return sorted((_mode(f, z) for f, z in zip(found.Fn, found.Xi)
@@ -160,14 +161,14 @@ def sdypy_lscf(t, y, kind, options, f_max):
     return [_mode(abs(p) / (2 * np.pi), -p.real / abs(p)) for p in poles]
 
 
-METHODS = {'own': ident.identify_decay, 'pyoma2-ssi-dat': None, 'pyoma2-ssi-cov': None,
-           'sdypy-lscf': sdypy_lscf}
+METHODS = ('own', 'pyoma2-ssi-dat', 'pyoma2-ssi-cov', 'sdypy-lscf')
 
 
 def method(name: str):
+    """The per-decay identification ``name`` (one of :data:`METHODS`)."""
     if name.startswith('pyoma2-ssi-'):
         return pyoma2_ssi(name.rsplit('-', 1)[1])
-    return METHODS[name]
+    return sdypy_lscf if name == 'sdypy-lscf' else ident.identify_decay
 
 
 # --------------------------------------------------------------------------- scoring
@@ -232,7 +233,7 @@ def markdown_row(row: dict) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--seeds', type=int, default=3, help='noise draws per case')
-    parser.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(METHODS))
+    parser.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS)
     parser.add_argument('--json', type=Path, help='write the rows to this JSON file')
     args = parser.parse_args()
     print('| case | method | true modes found | largest frequency error | largest damping '
