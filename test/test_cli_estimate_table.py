@@ -4,7 +4,8 @@ Robots: the paper's (config/paper_cdpr.yaml, 0-40 Hz), the low-tension one
 (config/low_tension_cdpr.yaml, lambda^2 up to 334, 0-10 Hz), a taut 6-DOF one
 (test/data/rigid_cdpr.yaml, 0-40 Hz) and a heavy-sag 6-DOF one (test/data/sagging_6dof.yaml,
 lambda^2 ~500-3000, 2 % modal damping, 0-5 Hz), a CoGiRo-sized one in heavy sag
-(test/data/cogiro_heavy_sag.yaml, 0-2 Hz) and two suspended underactuated ones
+(test/data/cogiro_heavy_sag.yaml, 0-2 Hz), the paper robot over pulleys with winch-side cable
+(config/paper_pulleys.yaml, 0-40 Hz) and two suspended underactuated ones
 (config/suspended_3cable.yaml with pulleys and an offset centre of mass,
 config/suspended_4cable.yaml); models spring, fem 4/8/16, catenary_exact, fem_sag 4/8/16.
 Measured against the reference of cdpr_dynamics.selection.reference (Richardson fem_sag). The

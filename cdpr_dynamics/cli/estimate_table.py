@@ -33,7 +33,8 @@ from cdpr_dynamics.selection.auto import SAFETY, SelectionError
 ROOT = Path(__file__).resolve().parents[2]
 ROBOTS = ('config/paper_cdpr.yaml', 'config/low_tension_cdpr.yaml', 'test/data/rigid_cdpr.yaml',
           'test/data/sagging_6dof.yaml', 'test/data/cogiro_heavy_sag.yaml',
-          'config/suspended_3cable.yaml', 'config/suspended_4cable.yaml')
+          'config/paper_pulleys.yaml', 'config/suspended_3cable.yaml',
+          'config/suspended_4cable.yaml')
 TABLE = ROOT / 'doc' / 'estimates' / 'table.json'   # the committed table of ROBOTS x MODELS
 MODELS = (('spring', 1), ('fem', 4), ('fem', 8), ('fem', 16), ('catenary_exact', 1),
           ('fem_sag', 4), ('fem_sag', 8), ('fem_sag', 16))
