@@ -9,7 +9,7 @@ from numpy.testing import assert_allclose
 from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilibrium
 from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.dynamics.system import Damping, Newmark
-from cdpr_dynamics.analysis.live import AUTO_RECHOOSE_M, LivePredictor
+from cdpr_dynamics.analysis.live import AUTO_RECHOOSE_M, LivePredictor, same_model
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 
@@ -197,3 +197,41 @@ def test_every_shipped_robot_starts_without_a_model_warning(name):
     predictor = LivePredictor(load_settings(CONFIG_DIR / name))
     assert predictor.last_update is not None
     assert predictor.last_update.warnings == ()
+
+
+def _drive(predictor, start_ms: int, stop_ms: int) -> np.ndarray:
+    """Wrenches every 1 ms (a 3 Hz / 5 Hz load) and a pose every 20 ms that moves 2 cm
+    every 100 ms; the displacements predicted."""
+    out = []
+    for k in range(start_ms, stop_ms):
+        if k % 20 == 0:
+            predictor.update_pose([0.02 * (k // 100), 0.0, 1.25])
+        t = k * 1e-3
+        out.append(predictor.advance(k * 1_000_000, [30 * np.sin(6 * np.pi * t), 0.0,
+                                                     200 * np.sin(10 * np.pi * t)]))
+    return np.array(out)
+
+
+@pytest.mark.parametrize('method,elements', [('spring', 1), ('fem', 8)])
+def test_a_predictor_restored_from_a_checkpoint_continues_bit_for_bit(method, elements):
+    settings = load_settings(CONFIG_DIR / 'paper_cdpr.yaml').replace(
+        method=method, elements_per_cable=elements)
+    running = LivePredictor(settings)
+    _drive(running, 0, 250)
+    checkpoint = running.checkpoint()
+    restored = LivePredictor(settings)
+    restored.restore(checkpoint)
+    assert same_model(restored, checkpoint)
+    np.testing.assert_array_equal(_drive(restored, 250, 500), _drive(running, 250, 500))
+    np.testing.assert_array_equal(restored.integrator._state, running.integrator._state)
+
+
+def test_a_checkpoint_of_another_model_is_refused():
+    settings = load_settings(CONFIG_DIR / 'paper_cdpr.yaml')
+    settings = settings.replace(method='fem', elements_per_cable=4)
+    running = LivePredictor(settings)
+    _drive(running, 0, 50)
+    other = LivePredictor(settings.replace(elements_per_cable=5))
+    assert not same_model(other, running.checkpoint())
+    with pytest.raises(ValueError, match='differs'):
+        other.restore(running.checkpoint())

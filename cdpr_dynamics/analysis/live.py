@@ -122,6 +122,50 @@ def rotated_quaternion(rotation: np.ndarray, theta_rad, base=None) -> np.ndarray
     return quaternion_product(rotation_vector_quaternion(theta_rad), base)
 
 
+@dataclass(frozen=True, eq=False)
+class Checkpoint:
+    """What :meth:`LivePredictor.advance` carries from one wrench to the next, copied, and the
+    model it steps at the pose ``position_m``, ``rotation`` (``integrator`` and ``eq`` by
+    reference: a rebuild makes new ones). :meth:`LivePredictor.restore` continues from it."""
+
+    position_m: np.ndarray
+    rotation: np.ndarray
+    integrator: object
+    eq: object
+    state: np.ndarray                # (3, n) u, v, a
+    t_ns: int | None
+    remainder_ns: int
+    load: np.ndarray | None          # the held wrench's load vector
+    load_dofs: int
+    last_step_load: np.ndarray | None
+    slack_forces: np.ndarray | None
+    slack_time_s: float
+
+    #: the fields :meth:`LivePredictor.restore` needs (the model references aside)
+    STATE_FIELDS = ('position_m', 'rotation', 'state', 't_ns', 'remainder_ns', 'load',
+                    'load_dofs', 'last_step_load', 'slack_forces', 'slack_time_s')
+
+
+def same_model(predictor: 'LivePredictor', checkpoint: Checkpoint) -> bool:
+    """Whether ``predictor`` steps the model of ``checkpoint`` bit for bit: the same
+    equilibrium (pose, tensions, end forces) and integrator (stiffness, mass, damping)."""
+    def equal(a, b) -> bool:
+        return a.shape == b.shape and np.array_equal(a, b)
+
+    mine, theirs = predictor.integrator, checkpoint.integrator
+    if theirs is None or type(mine) is not type(theirs) or mine.damping != theirs.damping:
+        return False
+    for a, b in ((mine.k, theirs.k), (mine.m, theirs.m)):
+        if not (equal(a.data, b.data) and equal(a.indices, b.indices)
+                and equal(a.indptr, b.indptr)):
+            return False
+    eq, other = predictor.eq, checkpoint.eq
+    return (equal(eq.tensions.tension_n, other.tensions.tension_n)
+            and equal(eq.end_force_n, other.end_force_n)
+            and equal(eq.geometry.position_m, other.geometry.position_m)
+            and equal(eq.geometry.rotation, other.geometry.rotation))
+
+
 class LivePredictor:
     """Current equilibrium, model and integrator of a robot; see the module docstring."""
 
@@ -568,6 +612,45 @@ class LivePredictor:
         rotation, position = self.eq.geometry.rotation, self.eq.geometry.position_m
         arm = rotation @ np.asarray(point_m, dtype=float)
         return (rotation, position, point_m, position + arm, matrix_to_quaternion(rotation))
+
+    def checkpoint(self) -> Checkpoint | None:
+        """The state to continue from (:meth:`restore`), or None while a cable is slack (the
+        compression-free model's state is not kept)."""
+        if self._stepper is not None or self.integrator is None:
+            return None
+
+        def copied(array):
+            return None if array is None else np.array(array, dtype=float)
+        return Checkpoint(copied(self.position_m), copied(self.rotation), self.integrator,
+                          self.eq, self.integrator._state.copy(), self._t_ns,
+                          self._remainder_ns, copied(self._load), self._load_dofs,
+                          copied(self._last_step_load), copied(self._slack_forces),
+                          float(self.slack_time_s))
+
+    def restore(self, checkpoint: Checkpoint) -> None:
+        """Continue from ``checkpoint``: the model rebuilt at its pose, then its state of
+        motion and wrench history. Raises ``ValueError`` where the model built here differs
+        from the checkpoint's (:func:`same_model`; a checkpoint without model references is
+        taken as checked)."""
+        self.update_pose(checkpoint.position_m, rotation=checkpoint.rotation, force=True)
+        if checkpoint.integrator is not None and not same_model(self, checkpoint):
+            raise ValueError('the model rebuilt at the checkpoint\'s pose differs from the '
+                             'one it was taken on')
+        if checkpoint.state.shape != self.integrator._state.shape:
+            raise ValueError(f'a checkpoint of {checkpoint.state.shape[1]} DOFs for a model '
+                             f'of {self.integrator._state.shape[1]}')
+        self.reset_time()
+        self.integrator._state[:] = checkpoint.state
+        self._t_ns, self._remainder_ns = checkpoint.t_ns, checkpoint.remainder_ns
+        self._load = None if checkpoint.load is None else checkpoint.load.copy()
+        self._load_dofs = checkpoint.load_dofs
+        self._spare_load, self._spare_dofs = None, 0
+        self._last_step_load = (None if checkpoint.last_step_load is None
+                                else checkpoint.last_step_load.copy())
+        self._slack_forces = (None if checkpoint.slack_forces is None
+                              else checkpoint.slack_forces.copy())
+        self.slack_time_s = checkpoint.slack_time_s
+        self.notice = ''
 
     def rebase_time(self) -> None:
         """Take the next wrench's stamp as the new time origin, keeping the state of motion

@@ -49,7 +49,7 @@ import numpy as np
 
 from cdpr_dynamics.analysis.config import (NODE_PARAMETER_BY_NAME, Settings, node_options,
                                            read_params_file, settings_from_params)
-from cdpr_dynamics.analysis.live import LivePredictor
+from cdpr_dynamics.analysis.live import Checkpoint, LivePredictor, same_model
 from cdpr_dynamics.recording.base import RecordingError, UndecodableMessage
 from cdpr_dynamics.recording.reader import McapFile, read_messages, recording_info, Salvage
 from cdpr_dynamics.recording import chunks
@@ -71,6 +71,10 @@ NODE_NAME = 'cdpr_dynamics'
 HARDWARE_ID = 'cdpr_replay'
 ORDERS = ('log', 'stamp')
 REPLAY_METADATA = 'cdpr_replay'   # the metadata record naming a replay's input and settings
+CHECKPOINT_METADATA = 'cdpr_replay_checkpoint'   # an interrupted replay's state to resume
+CHECKPOINT_EVERY = 1024   # input messages between two states kept for a checkpoint
+COUNTERS = ('poses', 'wrenches', 'poses_accepted', 'wrenches_accepted', 'rebuilds', 'skipped',
+            'first_skipped', 'before_first_pose')    # a summary's counts a checkpoint keeps
 
 
 class ReplayError(RuntimeError):
@@ -322,6 +326,7 @@ class ReplaySummary:
     removed_partials: list = field(default_factory=list)  # leftovers of killed replays
     resumed_from: str = ''      # the partial output continued (resume)
     resumed_inputs: int = 0     # inputs it held
+    resumed_exactly: bool = False   # from its checkpoint (else its inputs predicted again)
     messages_written: int = 0
     bytes: int = 0
     elapsed_s: float = 0.0
@@ -398,8 +403,7 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
         raise ReplayError(f'{output_path} is the input file; write the replay elsewhere')
     info, pose, wrench, total = inspect_input(input_path, pose_topic, wrench_topic,
                                               allow_incomplete)
-    predictor = LivePredictor(settings, options.pose_tolerance_m, options.angle_tolerance_rad,
-                              options.slack)
+    predictor = _predictor(settings, options)
     frame_id = settings.robot.frame_id
     handler = InputHandler(predictor, frame_id, options.quaternion_tolerance)
     displacement_topic = f'{_namespace(wrench)}/predicted_displacement'
@@ -436,10 +440,15 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
         writer.add_topic(tensions_topic, TENSIONS_TYPE, [_qos(1, transient_local=True)])
         writer.add_topic(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE, [_qos(10)])
         writer.add_metadata(REPLAY_METADATA, identity, now=True)
-        mute = 0
+        mute = skip = 0
         if source is not None:
-            mute = _copy_partial(source, identity, writer, {pose, wrench})
-            summary.resumed_from, summary.resumed_inputs = str(source), mute
+            copied, checkpoint = _copy_partial(source, identity, writer, {pose, wrench})
+            summary.resumed_from, summary.resumed_inputs = str(source), copied
+            if checkpoint is None:
+                mute = copied
+            else:
+                skip = _restore(checkpoint, summary, handler)
+                summary.resumed_exactly = True
             source.unlink()
         salvage = summary.salvage if allow_incomplete else None
         if salvage is not None:
@@ -447,13 +456,16 @@ def replay_offline(input_path, output_path, settings: Settings, method: str | No
         batches = mcap.batches({pose, wrench}, salvage)
         if order == 'stamp':
             batches = by_stamp(batches, output_path.parent)
+        kept = {}
         try:
             _replay_batches(batches, mcap, summary, handler, writer, options, total, progress,
-                            skip_bad, mute)
+                            skip_bad, mute, skip, kept)
         except KeyboardInterrupt:
             if not keep_partial:
                 raise
-            raise ReplayInterrupted(writer.keep_partial(), summary.inputs, total) from None
+            raise ReplayInterrupted(writer.keep_partial(_checkpoint_record(kept, settings,
+                                                                           options)),
+                                    summary.inputs, total) from None
         written = writer.close()
     summary.dofs = predictor.system.dofs
     summary.messages_written = written.message_count
@@ -471,17 +483,26 @@ class ReplayInterrupted(KeyboardInterrupt):
         self.partial, self.done, self.total = partial, done, total
 
 
-def _copy_partial(source: Path, identity: dict, writer: RecordingWriter, inputs: set) -> int:
-    """Copy what a partial output holds up to its last input (whose outputs may be cut off)
-    into ``writer``; the number of inputs copied. Its chunks are read up to the first damaged
-    one; a partial of another replay (other input, settings or order) is refused."""
+def _copy_partial(source: Path, identity: dict, writer: RecordingWriter,
+                  inputs: set) -> tuple[int, dict | None]:
+    """Copy what a partial output holds into ``writer``: up to its checkpoint's inputs where it
+    has one (an interrupted replay's, :func:`_checkpoint_record`), else up to its last input
+    (whose outputs may be cut off); the number of inputs copied and the checkpoint (or None).
+    Its chunks are read up to the first damaged one; a partial of another replay (other input,
+    settings or order) is refused."""
     with McapFile(source) as part:
         made = part.layout.metadata.get(REPLAY_METADATA)
         if made != identity:
             raise ReplayError(f'{source} is the partial output of a replay of another input '
                               'or with other settings: run without --resume to start over')
-        contents = []   # (chunk ref) read once to find the last input, then again to copy
-        last = None
+        checkpoint = part.layout.metadata.get(CHECKPOINT_METADATA)
+        limit = None
+        if checkpoint is not None:
+            counters = json.loads(checkpoint['counters'])
+            limit = counters['poses'] + counters['wrenches']
+        contents = []   # (chunk ref) read once to find where to stop, then again to copy
+        last = None     # (chunk, message) of the last input, or of the input after the limit
+        found = 0
         for ref in part.layout.chunks:
             try:
                 content = chunks.read_chunk(part.stream, ref)
@@ -492,15 +513,21 @@ def _copy_partial(source: Path, identity: dict, writer: RecordingWriter, inputs:
             topics = [part.channels[c].topic if c in part.channels else None
                       for c in content.channel_ids]
             for k, topic in enumerate(topics):
-                if topic in inputs:
+                if topic in inputs and (limit is None or found <= limit):
                     last = (len(contents) - 1, k)
+                    found += 1
+        if limit is not None and found == limit:     # nothing after the checkpoint's inputs
+            last = (len(contents) - 1, None)
+        if limit is not None and found < limit:
+            raise ReplayError(f'{source} holds {found} inputs, fewer than its checkpoint\'s '
+                              f'{limit}: run without --resume to start over')
         if last is None:
-            return 0
+            return 0, None
         copied = 0
         writers = {}
         for number, ref in enumerate(contents[:last[0] + 1]):
             content = chunks.read_chunk(part.stream, ref)
-            end = last[1] if number == last[0] else len(content.data)
+            end = last[1] if number == last[0] and last[1] is not None else len(content.data)
             for k in range(end):
                 channel = part.channels.get(content.channel_ids[k])
                 if channel is None or channel.topic not in writer.topic_counts:
@@ -510,16 +537,69 @@ def _copy_partial(source: Path, identity: dict, writer: RecordingWriter, inputs:
                     write = writers[channel.topic] = writer.channel_writer(channel.topic)
                 write(content.data[k], content.log_times[k], content.publish_times[k])
                 copied += channel.topic in inputs
-        return copied
+        return copied, checkpoint
+
+
+def _predictor(settings: Settings, options: NodeOptions) -> LivePredictor:
+    """The replay's predictor, as a resumed one is made too."""
+    return LivePredictor(settings, options.pose_tolerance_m, options.angle_tolerance_rad,
+                         options.slack)
+
+
+def _checkpoint_record(kept: dict, settings: Settings, options: NodeOptions) -> list:
+    """The metadata record of an interrupted replay's last state kept (by
+    :func:`_replay_batches`), for ``--resume`` to continue from; none (``[]``)
+    where that state cannot be restored bit for bit: a cable slack, or a model that a
+    predictor rebuilt at the pose does not reproduce exactly (a warm-started iterative
+    statics, auto's choice)."""
+    state = kept.get('predictor')
+    if state is None:
+        return []
+    fresh = _predictor(settings, options)
+    try:
+        fresh.update_pose(state.position_m, rotation=state.rotation, force=True)
+    except Exception:  # noqa: BLE001 - no checkpoint then: --resume predicts again
+        return []
+    if not same_model(fresh, state):
+        return []
+
+    def plain(value):
+        return value.tolist() if isinstance(value, np.ndarray) else value
+    return [(CHECKPOINT_METADATA, {
+        'consumed': str(kept['consumed']), 'counters': json.dumps(kept['counters']),
+        'clocks': json.dumps(kept['clocks']),
+        'state': json.dumps({name: plain(getattr(state, name))
+                             for name in Checkpoint.STATE_FIELDS})})]
+
+
+def _restore(record: dict, summary: ReplaySummary, handler: InputHandler) -> int:
+    """Continue from a checkpoint record: the predictor, the stamp clocks and the summary's
+    counts as they were; the number of input messages it had consumed."""
+    state = json.loads(record['state'])
+    arrays = {name: None if state[name] is None or not isinstance(state[name], list)
+              else np.array(state[name], dtype=float) for name in Checkpoint.STATE_FIELDS}
+    handler.predictor.restore(Checkpoint(
+        arrays['position_m'], arrays['rotation'], None, None, arrays['state'], state['t_ns'],
+        state['remainder_ns'], arrays['load'], state['load_dofs'], arrays['last_step_load'],
+        arrays['slack_forces'], float(state['slack_time_s'])))
+    handler.pose_clock.last_ns, handler.wrench_clock.last_ns = json.loads(record['clocks'])
+    counters = json.loads(record['counters'])
+    for name in COUNTERS:
+        setattr(summary, name, counters[name])
+    summary.rejected = Counter(counters['rejected'])
+    return int(record['consumed'])
 
 
 def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler,
                     writer: RecordingWriter, options: NodeOptions, total: int, progress,
-                    skip_bad: bool, mute: int = 0) -> None:
+                    skip_bad: bool, mute: int = 0, skip: int = 0,
+                    kept: dict | None = None) -> None:
     """The loop of :func:`replay_offline`: each input decoded from its bytes (checked against
     its type: :func:`~msg_adapters.mcap_schema.decode_stamped`), through ``handler``, and the
     outputs encoded straight to CDR bytes; nothing is written for the first ``mute`` inputs
-    (a resumed replay's output has them already)."""
+    (a resumed replay's output has them already), and the first ``skip`` input messages are
+    passed over (a resumed replay restored from its checkpoint). Every CHECKPOINT_EVERY input
+    messages, ``kept`` takes the state to resume from (:func:`_checkpoint_record`)."""
     predictor = handler.predictor
     frame_id = handler.frame_id
     point = options.output_point_m
@@ -539,8 +619,14 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
     index = done = 0
     for batch in batches:
         for log_time, publish_time, channel_id, data in batch:
-            is_pose, write_input, count, type_name = routes.get(channel_id) or route(channel_id)
+            if skip:
+                index += 1
+                skip -= 1
+                continue
+            if kept is not None and not mute and index % CHECKPOINT_EVERY == 0:
+                _keep(kept, index, summary, handler)
             index += 1
+            is_pose, write_input, count, type_name = routes.get(channel_id) or route(channel_id)
             try:
                 stamp_ns, frame, values = decode_stamped(data, count, type_name)
             except CdrError as err:
@@ -591,6 +677,15 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
         if progress is not None:
             done = summary.inputs + summary.skipped
             progress(done, total)
+
+
+def _keep(kept: dict, consumed: int, summary: ReplaySummary, handler: InputHandler) -> None:
+    """Keep the state after the first ``consumed`` input messages in ``kept`` (one update: a
+    Ctrl-C finds the previous state or this one whole)."""
+    counters = {name: getattr(summary, name) for name in COUNTERS}
+    counters['rejected'] = dict(summary.rejected)
+    kept.update(consumed=consumed, counters=counters, predictor=handler.predictor.checkpoint(),
+                clocks=(handler.pose_clock.last_ns, handler.wrench_clock.last_ns))
 
 
 def _predict_quietly(handler: InputHandler, is_pose: bool, stamp_ns: int, frame: str,
@@ -816,8 +911,10 @@ def summary_lines(summary: ReplaySummary) -> Iterable[str]:
     for leftover in summary.removed_partials:
         yield f'removed {leftover}, the partial output of an interrupted replay'
     if summary.resumed_from:
+        how = ('continued from its checkpoint' if summary.resumed_exactly
+               else 'predicted again, not rewritten')
         yield (f'resumed {summary.resumed_from}: kept its output of {summary.resumed_inputs} '
-               'inputs (predicted again, not rewritten)')
+               f'inputs ({how})')
     for line in summary.salvage.lines():
         yield f'{summary.input_path}: {line}'
     rejected = ', '.join(f'{k} {v}' for k, v in sorted(summary.rejected.items())) or 'none'

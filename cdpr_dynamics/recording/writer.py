@@ -157,11 +157,14 @@ class RecordingWriter:
         else:
             self._metadata.append((name, values))
 
-    def keep_partial(self) -> Path:
-        """Finish the file (summary, index) but keep it under its temporary name, e.g. for a
-        later run to continue; its path. Afterwards the writer is closed."""
+    def keep_partial(self, metadata=()) -> Path:
+        """Finish the file (summary, index, the ``metadata`` records: (name, dict) pairs) but
+        keep it under its temporary name, e.g. for a later run to continue; its path.
+        Afterwards the writer is closed."""
         self._check_open()
         try:
+            for name, values in metadata:
+                self._writer.add_metadata(name, dict(values))
             self._writer.finish()
             self._stream.close()
         except OSError as err:
