@@ -222,3 +222,37 @@ def test_invalid_model_is_refused():
     system = platform_system(settings.robot, eq.geometry, models.build('spring', cables))
     with pytest.raises(DynamicsError, match='invalid model'):
         slack_time_history(system, PAPER_FORCE, 5.0, 0.1, Damping())
+
+
+@pytest.mark.parametrize('speed_m_s', [1.5, 2.5])
+def test_a_thrown_platform_flies_ballistically_until_beyond_small_displacements(speed_m_s):
+    """The suspended 3-cable robot's platform thrown straight up: every cable slack, it flies
+    as a projectile, z = v t - g t^2 / 2 (Newmark's average acceleration is exact for a
+    constant one). At 1.5 m/s it turns back 0.115 m up, its chords within SMALL_ANGLE_RAD; at
+    2.5 m/s the step whose chord turns past it is refused with the displacement."""
+    from cdpr_dynamics.dynamics.slack import SMALL_ANGLE_RAD, SlackStepper
+    settings = load_settings(CONFIG.parent / 'suspended_3cable.yaml')
+    system = build_system(settings, equilibrium(settings), 'spring')
+    stepper = SlackStepper(system, Damping(), 1e-3)
+    cables, nd = stepper.cables, stepper.cables.nd
+    thrown = np.zeros(nd)
+    thrown[2] = speed_m_s
+    stepper.start(np.zeros(nd), thrown, np.zeros(nd))
+    g = -settings.robot.gravity_m_s2[2]
+    stepper.acc = np.zeros(nd)
+    stepper.acc[2] = -g                                # released: the cables already slack
+    steps = int(speed_m_s / g / 1e-3)                  # to the top of the flight
+    heights, turned = [], []
+    try:
+        for _ in range(steps):
+            stepper.step(np.zeros(nd))
+            assert not stepper.pull.any()
+            heights.append(stepper.q[2])
+            turned.append((np.linalg.norm(cables.g @ stepper.q, axis=1) / cables.length).max())
+    except DynamicsError as exc:
+        assert speed_m_s == 2.5 and 'beyond the small-displacement model' in str(exc)
+        assert turned[-1] <= SMALL_ANGLE_RAD < turned[-1] + 2 * (turned[-1] - turned[-2])
+    else:
+        assert speed_m_s == 1.5 and max(turned) <= SMALL_ANGLE_RAD
+    t = 1e-3 * np.arange(1, len(heights) + 1)
+    assert_allclose(heights, speed_m_s * t - 0.5 * g * t ** 2, rtol=0, atol=1e-12)

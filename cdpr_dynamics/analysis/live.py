@@ -538,9 +538,15 @@ class LivePredictor:
         return () if forces is None else tuple(np.flatnonzero(forces <= 0.0).tolist())
 
     def _slack_step(self, load: np.ndarray) -> None:
-        """One compression-free step; back to the linear model once settled."""
+        """One compression-free step; back to the linear model once settled. Where the
+        step fails (the platform flung beyond the model, Newton lost), the motion is
+        forgotten: the next wrench starts from rest, not from the failed state."""
         stepper = self._stepper
-        stepper.step(load[:stepper.cables.nd])
+        try:
+            stepper.step(load[:stepper.cables.nd])
+        except DynamicsError as exc:
+            self.reset_time()
+            raise DynamicsError(f'{exc}; the next wrench starts from rest') from None
         if not stepper.pull.min() > 0.0:
             self._taut_steps = 0
             self.slack_time_s += self.settings.dt_s

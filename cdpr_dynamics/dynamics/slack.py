@@ -41,6 +41,12 @@ halving of dt (9e-5 of the peak at the paper's dt = 1 ms), second order like the
 Newmark despite the kinks; an undamped free vibration through slack keeps its energy to 2e-3
 (test_slack).
 
+The platform's displacement is small in this model (rotations to first order, the chords
+moved by G_i q): a step that takes the platform beyond :data:`SMALL_ANGLE_RAD` of rotation, or
+a chord beyond it (|G_i q| / l_i, the shortest cable's), raises :class:`DynamicsError` with
+that displacement. A load that slackens cables this far flings the platform, and no
+small-displacement model answers that.
+
 ``cable_damping=False`` keeps C = dM M + dK K linear and slackens on the elastic tension only
 (the damper may push): it separates the effect of slack from that of where damping sits.
 """
@@ -57,6 +63,9 @@ from cdpr_dynamics.mechanics.robot import skew
 
 NEWTON_ITERATIONS = 50
 RESIDUAL_TOL = 1e-10
+#: rotation (rad) of the platform or of a chord beyond which the small-displacement model of
+#: the module docstring no longer answers (sin and tan then differ from the angle by 0.2-0.3 %)
+SMALL_ANGLE_RAD = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -344,11 +353,25 @@ class SlackStepper:
         else:
             raise DynamicsError(f'slack-aware Newmark: Newton did not converge (residual '
                                 f'{norm:.3g} N)')
+        self._check_small(q_new)
         self.q, self.v, self.acc = q_new, v_new, self.a0 * q_new + c_a
         self.pull, self.iterations = pull, it
         self._restoring = restoring
         self._jacobians = matrices
         return q_new
+
+    def _check_small(self, q: np.ndarray) -> None:
+        """Raise :class:`DynamicsError` where ``q`` leaves the small-displacement model."""
+        cables = self.cables
+        rotation = math.sqrt(float(q[3:6] @ q[3:6])) if cables.nd == 6 else 0.0
+        chord = float((np.linalg.norm(cables.g @ q, axis=1) / cables.length).max())
+        if max(rotation, chord) > SMALL_ANGLE_RAD:
+            moved = math.sqrt(float(q[:3] @ q[:3]))
+            raise DynamicsError(
+                f'slack cables let the platform move {moved:.3g} m'
+                + (f' and turn {rotation:.3g} rad' if cables.nd == 6 else '')
+                + f', beyond the small-displacement model ({SMALL_ANGLE_RAD} rad of a chord or '
+                'the platform): the load slackens the cables far more than the model answers')
 
 
 def slack_time_history(system: PlatformSystem, force_n, excitation_hz: float,
