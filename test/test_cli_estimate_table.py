@@ -81,6 +81,7 @@ def test_the_table_round_trips_through_json(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith('estimate_table: error: cannot write')
 
 
+@pytest.mark.slow
 def test_the_estimates_are_not_capped(table):
     """Heavy sag: spring misses the FRF by 110 % and catenary_exact by 259 % (measured against
     fem_sag at the sag-consistent state); both reported uncapped, and estimated no lower."""
@@ -117,6 +118,7 @@ def test_auto_within_the_default_budget(table, solved, path):
         assert measured.error <= max(e.measured_freq_error, e.measured_frf_error)
 
 
+@pytest.mark.slow
 def test_the_table_prints_as_markdown(table, capsys):
     text = estimate_table.markdown(table['paper_cdpr'])
     lines = text.splitlines()

@@ -43,6 +43,7 @@ def test_reference_and_auto_pick(paper_40):
     assert len(rows) == len(tradeoff.SWEEP) + 1
 
 
+@pytest.mark.slow
 def test_what_the_chart_teaches(paper_40):
     _, reference, _, rows = paper_40
     for key in (('spring', 1), ('fem', 1), ('catenary', 1), ('catenary_exact', 1),

@@ -232,6 +232,7 @@ def test_auto_on_other_robots_meets_the_tolerance(robot, band, tolerance):
         assert choice.method not in models.STRAIGHT_METHODS
 
 
+@pytest.mark.slow
 def test_low_tension_robot_straight_models_fail_and_auto_says_why():
     settings, eq, ref = case('low_tension', 10.0)
     for method, n in (('fem', 32), ('dsm', 0), ('spring', 1)):
@@ -249,6 +250,7 @@ def test_low_tension_robot_straight_models_fail_and_auto_says_why():
     assert choice.method == 'fem_sag'
 
 
+@pytest.mark.slow
 def test_choice_is_a_frozen_record_with_a_one_line_reason():
     settings, eq, ref = case('paper', 40.0)
     choice = choose_model(settings, eq)
@@ -263,6 +265,7 @@ def test_choice_is_a_frozen_record_with_a_one_line_reason():
     assert ('spring', 1) in {(m, n) for m, n, _ in choice.considered}
 
 
+@pytest.mark.slow
 def test_unreachable_tolerance_takes_the_best_and_says_so():
     settings, eq, _ = case('paper', 100.0)
     choice = choose_model(settings.replace(tolerance=1e-6, max_dofs=UNLIMITED), eq)
@@ -272,6 +275,7 @@ def test_unreachable_tolerance_takes_the_best_and_says_so():
     assert choice.warnings == (f'accuracy: {choice.reason}',)
 
 
+@pytest.mark.slow
 def test_auto_stays_within_the_budget_and_says_what_would_meet_the_tolerance():
     """0-100 Hz at 1 % needs fem_sag n = 44 (1035 DOFs): over the default 600 DOFs auto
     takes the most accurate model within them, fem_sag n = 25, and says so."""
@@ -322,6 +326,7 @@ def test_undamped_settings_judge_by_frequencies_only():
     assert choice.estimated_frf_error == 0.0 and math.isfinite(choice.estimated_error)
 
 
+@pytest.mark.slow
 def test_build_system_auto_uses_the_choice():
     settings, eq, _ = case('paper', 40.0)
     system = build_system(settings.replace(method='auto'), eq)
