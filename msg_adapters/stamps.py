@@ -92,3 +92,32 @@ class StampClock:
 
     def accept(self, stamp: Stamp) -> None:
         self.last_ns = stamp.ns
+
+
+def handle_in_stamp_order(held, takes, handles, budget: int) -> None:
+    """Hand input messages to their handlers in header-stamp order across the inputs.
+
+    ``held[i]`` is the message already taken from input ``i`` (None: none), ``takes[i]()`` the
+    next one waiting there (None: none), ``handles[i]`` its handler. Each turn takes one message
+    from every input whose slot is empty and hands on the earliest held one: at equal stamps the
+    lower index first, an unstamped message (stamp 0, timed by its arrival) before any stamped
+    one. So a pose applies to exactly the wrenches stamped at or after it, also when the node
+    runs behind and both inputs have a backlog (each input's queue is in its own stamp order).
+    After ``budget`` turns nothing more is taken: what is still held is handed on, the rest
+    waits for the next call.
+    """
+    held = list(held)
+
+    def order(i):
+        stamp = held[i].header.stamp
+        return (stamp.sec * 1_000_000_000 + stamp.nanosec) or -1, i
+
+    for turn in range(budget + len(held)):
+        if turn < budget:
+            held = [msg if msg is not None else take() for msg, take in zip(held, takes)]
+        waiting = [i for i, msg in enumerate(held) if msg is not None]
+        if not waiting:
+            return
+        first = min(waiting, key=order)
+        msg, held[first] = held[first], None
+        handles[first](msg)

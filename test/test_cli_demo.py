@@ -249,9 +249,11 @@ def test_the_demo_starts_after_the_match_and_reports_what_its_recording_holds(
     assert 'prediction: node.slack = aware (the compression-free model while a cable is slack)' \
         in out and result['slack_mode'] == 'aware'
     # the node's predictions are the demo's own run of the same predictor on what it sent
-    # (where the node took every input: a busy host drops some from its queues)
+    # (where the node took every input: a busy host drops some from its queues), also when the
+    # node ran behind (it takes the waiting inputs in stamp order); within the tension QP's
+    # round-off, as the replay tests (1e-6 of the peak)
     if (result['node_wrenches_accepted'] == 1500 and result['node_poses_accepted'] == 75):
-        assert result['node_vs_local_max_m'] < 1e-9
+        assert result['node_vs_local_max_m'] <= 1e-6 * result['peak_aware_m']
     assert f'recorded to {mcap.resolve()}: ' in out
     assert f'wrench {len(holds["wrench"])} of 1500' in out
     assert png.stat().st_size > 20000 and f'wrote {png.resolve()}' in out

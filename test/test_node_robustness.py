@@ -36,7 +36,7 @@ from msg_adapters.frf_service import (ARRAYS, MAX_NAMES, frequency_response_clie
                                       unpack_response, wait_for_frequency_response)
 from msg_adapters.inputs import InputHandler
 from msg_adapters.pose import pose_message
-from msg_adapters.stamps import StampPolicy
+from msg_adapters.stamps import StampPolicy, handle_in_stamp_order
 from msg_adapters.validation import InvalidMessage, check_frame, ns_to_stamp
 from msg_adapters.wrench import wrench_message
 from test_feasibility import _many_cables as many_cable_robot
@@ -124,6 +124,42 @@ def test_unstamped_wrenches_can_be_timed_by_arrival(settings):
     assert_allclose(u, static_z(settings), rtol=1e-4, atol=1e-15)           # not 0
     with pytest.raises(InvalidMessage, match='no clock'):
         send(handler, 0, now_ns=0)
+
+
+def _queue(messages):
+    """``take`` of a subscription whose queue holds ``messages``."""
+    waiting = list(messages)
+    return lambda: waiting.pop(0) if waiting else None
+
+
+@pytest.mark.parametrize('first', ['pose', 'wrench'])
+def test_a_backlog_of_poses_and_wrenches_is_handled_in_stamp_order(first):
+    # a node running behind finds 20 wrenches (1 ms apart) and 3 poses (5 ms apart, two of
+    # them stamped like a wrench) waiting: each pose must come before the wrenches stamped at
+    # or after it, whichever input the wait set handed over first
+    poses = [pose_message((0.0, 0.0, 0.0), stamp=ns_to_stamp(t)) for t in (3, 8, 13)]
+    wrenches = [wrench_message((0.0, 0.0, 1.0), stamp=ns_to_stamp(t)) for t in range(20)]
+    order = []
+    held = (poses.pop(0), None) if first == 'pose' else (None, wrenches.pop(0))
+    handle_in_stamp_order(held, (_queue(poses), _queue(wrenches)),
+                          (lambda m: order.append(('pose', m.header.stamp.nanosec)),
+                           lambda m: order.append(('wrench', m.header.stamp.nanosec))),
+                          budget=64)
+    expected = sorted([('pose', t) for t in (3, 8, 13)] + [('wrench', t) for t in range(20)],
+                      key=lambda item: (item[1], item[0] != 'pose'))
+    assert order == expected
+
+
+def test_a_backlog_beyond_the_budget_is_left_waiting_in_order():
+    wrenches = [wrench_message((0.0, 0.0, 1.0), stamp=ns_to_stamp(t)) for t in range(1, 11)]
+    unstamped = pose_message((0.0, 0.0, 0.0))
+    order = []
+    take_wrench = _queue(wrenches)
+    handle_in_stamp_order((None, take_wrench()), (_queue([unstamped]), take_wrench),
+                          (lambda m: order.append(m.header.stamp.nanosec),) * 2, budget=4)
+    # an unstamped pose is timed by its arrival: before the stamped backlog; four turns hand
+    # on four messages, the rest waits in order for the next call
+    assert order == [0, 1, 2, 3] and take_wrench().header.stamp.nanosec == 4
 
 
 def test_a_pose_stamped_in_the_future_does_not_freeze_the_model(settings):

@@ -62,11 +62,10 @@ from msg_adapters.joint_state import length_offsets_message, tensions_message
 from msg_adapters.markers import equilibrium_markers, update_arrow
 from msg_adapters.pose import fill_pose, pose_message
 from msg_adapters.inputs import NUMERIC_ERRORS, InputHandler, first_line
-from msg_adapters.stamps import StampPolicy
+from msg_adapters.stamps import StampPolicy, handle_in_stamp_order
 from msg_adapters.validation import (InvalidMessage, clip, clock_ns, ns_to_stamp, s_to_stamp,
                                      stamp_to_ns)
 
-WRENCH_BATCH = 64         # wrenches taken per callback beyond the first
 CHANGE_PERIOD_S = 0.1
 NAME_CHECK_S = 1.0         # the graph is searched for a namesake this often
 NAME_WINDOW_S = 10.0       # a namesake found within this long of the start: this node is
@@ -296,8 +295,28 @@ class DynamicsNode(Node):
 
     # -------------------------------------------------------------------------- inputs
 
-    @_locked
     def on_pose(self, msg: PoseStamped) -> None:
+        """Handle the pose and the inputs waiting behind it (see :meth:`_take_inputs`)."""
+        self._take_inputs(msg, None)
+
+    def on_wrench(self, msg: WrenchStamped) -> None:
+        """Handle the wrench and the inputs waiting behind it (see :meth:`_take_inputs`)."""
+        self._take_inputs(None, msg)
+
+    def _take_inputs(self, pose, wrench) -> None:
+        """Handle the message taken and the poses and wrenches already waiting (bounded), in
+        stamp order: a node that runs behind still predicts each wrench with the model of the
+        last pose stamped at or before it, as the inputs were sent. One round trip through the
+        wait set costs more than a prediction, so a burst is taken in one go: up to both
+        queues' depth (beyond that the node receives more than it can handle, and the queues
+        drop inputs)."""
+        subs = (self.pose_sub, self.wrench_sub)
+        handle_in_stamp_order((pose, wrench), [functools.partial(take_next, s) for s in subs],
+                              (self._handle_pose, self._handle_wrench),
+                              sum(s.qos_profile.depth for s in subs))
+
+    @_locked
+    def _handle_pose(self, msg: PoseStamped) -> None:
         """Move the model to the pose; rebuild only when it moved more than the tolerance."""
         background = self._background is not None
         try:
@@ -371,16 +390,6 @@ class DynamicsNode(Node):
             return request
         self._publish_tensions(request.stamp)
         return None
-
-    def on_wrench(self, msg: WrenchStamped) -> None:
-        """Handle the wrench, then those already waiting (bounded): one executor round trip
-        costs more than the prediction itself, so a burst is taken in one go."""
-        self._handle_wrench(msg)
-        for _ in range(WRENCH_BATCH):
-            msg = take_next(self.wrench_sub)
-            if msg is None:
-                break
-            self._handle_wrench(msg)
 
     @_locked
     def _handle_wrench(self, msg: WrenchStamped) -> None:
