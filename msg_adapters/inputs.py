@@ -121,3 +121,29 @@ class InputHandler:
         note, skipped = stamp.note, self.predictor.notice
         self.notice = f'{note}; {skipped}' if note and skipped else note or skipped
         return u
+
+    def wrench_run(self, stamps_ns: np.ndarray, frame_id: str,
+                   values: np.ndarray) -> tuple[int, np.ndarray]:
+        """:meth:`wrench_values` of the first k of a run of wrenches in one frame (stamps (m,)
+        ns, values (m, 6)), without a node clock, at once: (k, the platform states (k, nd)
+        after each, :meth:`LivePredictor.advance_run`'s). They are the leading wrenches that
+        :meth:`wrench_values` would accept without a word (finite, in the robot's frame,
+        stamped, in order, well inside the feasible set) and the predictor can take in one
+        loop; k < m leaves the next one to :meth:`wrench_values`, which then accepts or
+        rejects it as it would any other (and the run goes on after it)."""
+        empty = np.empty((0, self.predictor.system.platform_dofs))
+        if frame_id != self.frame_id or not len(stamps_ns):
+            return 0, empty
+        last = self.wrench_clock.last_ns
+        force, moment = values[:, :3], values[:, 3:6]
+        plain = (np.isfinite(values).all(axis=1) & (stamps_ns != 0)
+                 & (stamps_ns >= np.maximum.accumulate(stamps_ns))
+                 & self.predictor.wrenches_clear(force, moment))
+        if last is not None:
+            plain &= stamps_ns >= last
+        count = len(stamps_ns) if plain.all() else int(plain.argmin())
+        count, q = self.predictor.advance_run(stamps_ns[:count], force, moment)
+        if count:
+            self.notice = ''
+            self.wrench_clock.last_ns = int(stamps_ns[count - 1])
+        return count, q if count else empty

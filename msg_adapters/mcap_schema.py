@@ -38,6 +38,8 @@ import sys
 from functools import lru_cache
 from typing import Iterable, Mapping, Sequence
 
+import numpy as np
+
 PROFILE = 'ros2'
 SCHEMA_ENCODING = 'ros2msg'
 MESSAGE_ENCODING = 'cdr'
@@ -581,6 +583,64 @@ def encode_stamped(stamp_ns: int, frame_id: str, values) -> bytes:
     layout, frame = _stamped_layout(frame_id, len(values))
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
     return layout.pack(b'\x00\x01\x00\x00', sec, nanosec, len(frame), frame, *values)
+
+
+def decode_stamped_run(datas: Sequence[bytes], count: int,
+                       type_name: str = 'message') -> tuple:
+    """:func:`decode_stamped` of a run of messages at once, as far as they share one layout:
+    (k, stamps (k,) int64 ns, frame id, values (k, ``count``) float64) of the first k messages,
+    which are little endian, as long as the first and have its header bytes (encapsulation,
+    frame id and padding) - the same checks then pass and the same fields come out. k = 0
+    where the first is not such a message (decode it alone: :func:`decode_stamped` says why)."""
+    if not datas or datas[0][:2] != b'\x00\x01':
+        return 0, None, '', None
+    first = datas[0]
+    try:
+        _, frame_id, _ = decode_stamped(first, count, type_name)
+    except CdrError:
+        return 0, None, '', None
+    size = len(first)
+    start = 4 + ((12 + len(frame_id.encode('utf-8')) + 1 + 7) & ~7)   # as decode_stamped
+    k = len(datas)
+    joined = b''.join(datas)
+    if len(joined) != k * size:         # another length among them: the run of the first's
+        k = next(i for i, data in enumerate(datas) if len(data) != size)
+        joined = joined[:k * size]
+    raw = np.frombuffer(joined, np.uint8).reshape(k, size)
+    same = ((raw[:, :4] == raw[0, :4]).all(axis=1)
+            & (raw[:, 12:start] == raw[0, 12:start]).all(axis=1))
+    if not same.all():
+        k = int(same.argmin())
+    fields = np.frombuffer(joined, _run_dtype(size, start, count), count=k)
+    stamps = fields['sec'].astype(np.int64) * 1_000_000_000 + fields['nanosec']
+    return k, stamps, frame_id, fields['values'].astype(float)
+
+
+def encode_stamped_run(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -> list:
+    """:func:`encode_stamped` of a run of messages (stamps (k,) ns, values (k, count)): the
+    same bytes, one array pass."""
+    values = np.asarray(values, dtype=float)
+    layout, frame = _stamped_layout(frame_id, values.shape[1])
+    size = layout.size
+    start = size - 8 * values.shape[1]
+    out = np.zeros(len(values), _run_dtype(size, start, values.shape[1]))
+    raw = out.view(np.uint8).reshape(len(values), size)
+    raw[:, :4] = (0, 1, 0, 0)
+    raw[:, 12:start] = np.frombuffer(struct.pack('<I', len(frame)) + frame
+                                     + bytes(start - 16 - len(frame)), np.uint8)
+    sec, nanosec = np.divmod(np.asarray(stamps_ns, dtype=np.int64), 1_000_000_000)
+    out['sec'], out['nanosec'], out['values'] = sec, nanosec, values
+    buffer = out.tobytes()
+    return [buffer[i:i + size] for i in range(0, len(buffer), size)]
+
+
+@lru_cache(maxsize=64)
+def _run_dtype(size: int, start: int, count: int) -> np.dtype:
+    """A record of a Header + ``count`` float64 message of ``size`` bytes whose values
+    start at byte ``start`` (little endian): the stamp's fields and the values."""
+    return np.dtype({'names': ['sec', 'nanosec', 'values'],
+                     'formats': ['<i4', '<u4', ('<f8', (count,))],
+                     'offsets': [4, 8, start], 'itemsize': size})
 
 
 @lru_cache(maxsize=64)

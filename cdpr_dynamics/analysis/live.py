@@ -60,6 +60,7 @@ DENSE_NEWMARK_DOFS = 100    # up to this size dense matrices are cheaper to buil
 SLACK_MODES = ('aware', 'linear')
 SETTLE_S = 0.05             # every cable taut this long: back from the compression-free model
 CLOSED_FORM_STEPS = 100     # longer intervals (and longer than the DOFs) in closed form
+SLACK_MARGIN = 1e-9          # advance_run leaves to advance a tension this near to zero
 
 
 @dataclass(frozen=True)
@@ -286,6 +287,15 @@ class LivePredictor:
         """Why the cables cannot hold this external wrench at the current pose, or ''."""
         return self.wrench_set.reason(force_n, moment_nm)
 
+    def wrenches_clear(self, force_n: np.ndarray, moment_nm: np.ndarray) -> np.ndarray:
+        """(k,) True for the external wrenches (rows of (k, 3) arrays) that
+        :meth:`wrench_reason` accepts at the current pose by its first test alone (one
+        product for all); False: ask :meth:`wrench_reason`."""
+        inside = getattr(self.wrench_set, 'inside_many', None)
+        if inside is None:
+            return np.zeros(len(force_n), dtype=bool)
+        return inside(force_n, moment_nm)
+
     def _resolved_settings(self, eq: Equilibrium) -> Settings:
         """Settings with ``auto`` replaced by its choice, re-chosen only after the pose moved
         more than ``AUTO_RECHOOSE_M`` (the choice costs 0.1-0.2 s; it varies slowly). The
@@ -420,6 +430,100 @@ class LivePredictor:
                                               else (None, 0))
         self._load, self._load_dofs = load, nd
         return self.platform_state()[0][:3].copy()
+
+    def advance_run(self, stamps_ns: np.ndarray, force_n: np.ndarray,
+                    moment_nm: np.ndarray) -> tuple[int, np.ndarray]:
+        """:meth:`advance` of the first k wrenches of a run (stamps (m,) int ns, non-
+        decreasing, rows of (m, 3) forces and moments), in one loop of the same Newmark
+        steps: (k, their platform states (k, nd), :meth:`platform_state`'s q after each).
+
+        The same numbers bit for bit: the steps are the integrator's own, on the same load
+        vectors. The run stops (k < m) before a wrench that :meth:`advance` must take alone:
+        the first after a reset or a model change, one whose interval is stepped in closed
+        form or capped (``max_steps_per_wrench``), and one in whose steps a cable goes slack
+        or comes within :data:`SLACK_MARGIN` of it (``slack='aware'``; at its stamp for
+        ``'linear'``); the steps taken past it are taken back.
+        """
+        integrator = self.integrator
+        nd = self.system.platform_dofs
+        n = integrator.u.shape[0]
+        held = self._load
+        count = len(stamps_ns)
+        if (not count or self._t_ns is None or held is None or held.shape[0] != n
+                or self._stepper is not None):
+            return 0, np.empty((0, nd))
+        dt_ns = max(1, round(self.settings.dt_s * 1e9))
+        elapsed = np.asarray(stamps_ns, dtype=np.int64) - self._t_ns + self._remainder_ns
+        done_steps, remainders = np.divmod(elapsed, dt_ns)   # advance's divmod, chained
+        steps = np.diff(done_steps, prepend=0)
+        plain = ((steps <= min(max(CLOSED_FORM_STEPS, n), self.max_steps_per_wrench))
+                 & (elapsed >= np.maximum.accumulate(elapsed)) & (elapsed >= 0))
+        count = count if plain.all() else int(plain.argmin())
+        loads = np.zeros((count, n))
+        loads[:, :3] = force_n[:count]
+        if nd == 6:
+            loads[:, 3:6] = moment_nm[:count]
+        sources = [held, *loads[:-1]]     # the load held over each wrench's interval
+        start = integrator._state.copy()
+        taken = self._run_steps(sources, steps[:count])
+        total = int(done_steps[count - 1]) if count else 0
+        if total:                         # a cable slack, or too near it: take back
+            bad = self._slack_in(taken, np.cumsum(steps[:count]))
+            if bad < count:
+                integrator._state[:] = start
+                count, total = bad, int(done_steps[bad - 1]) if bad else 0
+                taken = self._run_steps(sources, steps[:count])
+        if not count:
+            return 0, np.empty((0, nd))
+        history = np.concatenate([start[None, 0, :nd], taken[:, 0]])
+        q = history[done_steps[:count]]
+        if total:
+            last = int(np.flatnonzero(steps[:count])[-1])      # the last wrench with steps
+            if self.slack == 'aware':
+                self._last_step_load = sources[last][:nd].copy()
+            self._slack_forces = None
+        elif self.slack == 'aware':
+            self._slack_forces = None
+        self._t_ns = int(stamps_ns[count - 1])
+        self._remainder_ns = int(remainders[count - 1])
+        self._load, self._load_dofs = loads[count - 1].copy(), nd
+        self._spare_load, self._spare_dofs = None, 0
+        self.notice = ''
+        return count, q
+
+    def _run_steps(self, sources: list, steps: np.ndarray) -> np.ndarray:
+        """``steps[k]`` linear steps under ``sources[k]`` each, in turn; the platform rows
+        (u, v) after every step (s, 2, nd)."""
+        integrator = self.integrator
+        nd = self.system.platform_dofs
+        state, step = integrator._state, integrator.step
+        taken = np.empty((int(steps.sum()), 2, nd))
+        row = 0
+        for load, times in zip(sources, steps.tolist()):
+            for _ in range(times):
+                step(load)
+                taken[row] = state[:2, :nd]
+                row += 1
+        return taken
+
+    def _slack_in(self, taken: np.ndarray, ends: np.ndarray) -> int:
+        """The first wrench of a run whose steps (``taken``, ending at step ``ends[k]``) bring
+        a cable within :data:`SLACK_MARGIN` of slack, the check :meth:`_step` makes after
+        each step (``slack='aware'``) or at the wrench's stamp (``'linear'``); the number of
+        wrenches if none does."""
+        dk = self.integrator.damping.stiffness_factor
+        if self.slack == 'linear':
+            at = np.unique(ends[ends > 0]) - 1
+            taken = taken[at]
+        else:
+            at = np.arange(len(taken))
+        x = taken[:, 0] + dk * taken[:, 1]
+        tension = self._tension0 + x @ self._tension_map.T
+        bound = SLACK_MARGIN * (np.abs(self._tension0) + np.abs(x) @ np.abs(self._tension_map).T)
+        near = ~(tension > bound).all(axis=1)
+        if not near.any():
+            return len(ends)
+        return int(np.searchsorted(ends, at[int(near.argmax())] + 1))
 
     # ----------------------------------------------------------------------------- slack
 
@@ -596,20 +700,41 @@ class LivePredictor:
     def prediction(self, point_m=(0.0, 0.0, 0.0)) -> Prediction:
         """The integrator's current state at the point ``point_m`` (platform frame, m):
         :class:`Prediction`; the default (the centroid) gives :meth:`advance`'s displacement."""
-        nd = self.system.platform_dofs
-        q = self.platform_state()[0]
+        return self._predict(self.platform_state()[0], point_m)
+
+    def _predict(self, q: np.ndarray, point_m) -> Prediction:
+        """:meth:`prediction` of the platform state ``q`` (nd,)."""
+        pose = self._pose(point_m)
+        if q.shape[0] == 3:        # a point mass: u itself, the equilibrium orientation
+            displacement = q[:3].copy()
+            return Prediction(displacement, pose[3] + displacement, pose[4])
+        rotation = pose[0]
+        displacement = point_displacement(q, rotation, point_m)
+        return Prediction(displacement, pose[3] + displacement,
+                          rotated_quaternion(rotation, q[3:6], pose[4]))
+
+    def _pose(self, point_m) -> tuple:
+        """:meth:`_pose_parts`, kept until the pose or the point changes."""
         point = point_m if type(point_m) is tuple else tuple(map(float, point_m))
         pose = self._pose_of
         rotation, position = self.eq.geometry.rotation, self.eq.geometry.position_m
         if (pose is None or pose[0] is not rotation or pose[1] is not position
                 or pose[2] != point):
             pose = self._pose_of = self._pose_parts(point)
-        if nd == 3:        # a point mass: u itself, the equilibrium orientation
-            displacement = q[:3].copy()
-            return Prediction(displacement, pose[3] + displacement, pose[4])
-        displacement = point_displacement(q, rotation, point_m)
-        return Prediction(displacement, pose[3] + displacement,
-                          rotated_quaternion(rotation, q[3:6], pose[4]))
+        return pose
+
+    def predictions(self, q: np.ndarray, point_m=(0.0, 0.0, 0.0)) -> tuple:
+        """:meth:`prediction` of platform states ``q`` (k, nd) (:meth:`advance_run`'s) at the
+        current pose: (displacements (k, 3), positions (k, 3), quaternions (k, 4)), the
+        same numbers."""
+        if self.system.platform_dofs != 3:
+            rows = [self._predict(row, point_m) for row in q]
+            return tuple(np.array([getattr(r, name) for r in rows]).reshape(len(q), -1)
+                         for name in ('displacement_m', 'position_m', 'quaternion'))
+        pose = self._pose(point_m)
+        displacement = q[:, :3].copy()
+        return (displacement, pose[3] + displacement,
+                np.broadcast_to(pose[4], (len(q), 4)))
 
     def _pose_parts(self, point_m) -> tuple:
         """What :meth:`prediction` takes from the equilibrium pose (the given pose, or an

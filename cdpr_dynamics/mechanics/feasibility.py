@@ -222,6 +222,22 @@ class WrenchSet:
         return (f'wrench outside the feasible set: the cables would need {_fmt(w)} with '
                 f'tensions in [{self.t_min_n:g}, {self.t_max_n:g}] N (linear program)')
 
+    def inside_many(self, force_n: np.ndarray, moment_nm: np.ndarray) -> np.ndarray:
+        """(k,) True for the external wrenches (rows of ``force_n`` (k, 3), ``moment_nm``
+        (k, 3)) that :meth:`reason` accepts by its first test alone, one product for all; the
+        others (False) are for :meth:`reason` itself to decide. All False without every facet
+        normal."""
+        force_n = np.asarray(force_n, dtype=float)
+        if not self.exact:
+            return np.zeros(len(force_n), dtype=bool)
+        test, _ = self._inside_test
+        d = test.shape[1] - 1
+        external = np.ones((len(force_n), d + 1))
+        external[:, :3] = force_n
+        if d == 6:
+            external[:, 3:6] = moment_nm
+        return (external @ test.T).max(axis=1, initial=-np.inf) <= 0.0
+
     def symmetric_limit(self, force_n, moment_nm=(0.0, 0.0, 0.0)) -> float:
         """The largest s >= 0 with both +s f and -s f feasible (f = (force, moment), the
         amplitude of a harmonic load as a multiple of f); 0 where even f = 0 is not, inf where

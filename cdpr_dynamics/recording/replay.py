@@ -53,12 +53,14 @@ from cdpr_dynamics.analysis.live import Checkpoint, LivePredictor, same_model
 from cdpr_dynamics.recording.base import RecordingError, UndecodableMessage
 from cdpr_dynamics.recording.reader import McapFile, read_messages, recording_info, Salvage
 from cdpr_dynamics.recording import chunks
+from cdpr_dynamics.recording.cdr import serialize
 from cdpr_dynamics.recording.writer import partial_files, RecordingWriter
 from msg_adapters import diagnostics as diag
 from msg_adapters.displacement import read_displacement
 from msg_adapters.inputs import InputHandler
 from msg_adapters.joint_state import read_tensions, tensions_message
-from msg_adapters.mcap_schema import CdrError, decode_stamped, encode_stamped
+from msg_adapters.mcap_schema import (CdrError, decode_stamped, decode_stamped_run,
+                                      encode_stamped, encode_stamped_run)
 from msg_adapters.validation import InvalidMessage, ns_to_stamp, stamp_to_ns
 
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
@@ -599,14 +601,29 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
     outputs encoded straight to CDR bytes; nothing is written for the first ``mute`` inputs
     (a resumed replay's output has them already), and the first ``skip`` input messages are
     passed over (a resumed replay restored from its checkpoint). Every CHECKPOINT_EVERY input
-    messages, ``kept`` takes the state to resume from (:func:`_checkpoint_record`)."""
+    messages, ``kept`` takes the state to resume from (:func:`_checkpoint_record`).
+
+    A run of wrenches (consecutive messages of the wrench topic between two poses) goes
+    through as a whole where it can (:func:`_wrench_run`): decoded, checked, predicted and
+    written at once, the same messages as one by one."""
     predictor = handler.predictor
     frame_id = handler.frame_id
     point = options.output_point_m
     pose, wrench = summary.pose_topic, summary.wrench_topic
     write_displacement = writer.channel_writer(f'{_namespace(wrench)}/predicted_displacement')
     write_predicted_pose = writer.channel_writer(f'{_namespace(wrench)}/predicted_pose')
-    tensions_topic = f'{_namespace(pose)}/cable_tensions'
+    outputs = (writer.channel_id(f'{_namespace(wrench)}/predicted_displacement'),
+               writer.channel_id(f'{_namespace(wrench)}/predicted_pose'))
+    write_tensions = writer.channel_writer(f'{_namespace(pose)}/cable_tensions')
+    tensions = {}    # the equilibrium's cable_tensions bytes: only its stamp changes
+
+    def tensions_bytes(stamp_ns: int) -> bytes:
+        eq = predictor.eq
+        if tensions.get('eq') is not eq:
+            tensions.update(eq=eq, data=serialize(tensions_message(
+                eq.geometry.cable_length_m, eq.tensions.tension_n, ns_to_stamp(stamp_ns),
+                frame_id)))
+        return restamped(tensions['data'], stamp_ns)
     routes = {}
 
     def route(channel_id: int) -> tuple:
@@ -616,17 +633,53 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
                               POSE_TYPE if is_pose else WRENCH_TYPE)
         return routes[channel_id]
 
-    index = done = 0
+    def one_wrench(stamp_ns, frame, values, log_time) -> None:
+        summary.wrenches += 1
+        try:
+            handler.wrench_values(stamp_ns, frame, values)
+        except InvalidMessage as exc:
+            summary.rejected[f'wrench:{exc.kind}'] += 1
+            writer.write(DIAGNOSTICS_TOPIC, rejection_message(
+                'wrench', exc, wrench, ns_to_stamp(stamp_ns)), log_time, log_time)
+        else:
+            summary.wrenches_accepted += 1
+            summary.before_first_pose += not summary.poses_accepted
+            out = predictor.prediction(point)
+            write_displacement(encode_stamped(stamp_ns, frame_id, out.displacement_m),
+                               log_time, log_time)
+            write_predicted_pose(encode_stamped(
+                stamp_ns, frame_id, (*out.position_m, *out.quaternion)), log_time, log_time)
+
+    def wrench_run(items, write_input) -> int:
+        return _wrench_run(items, handler, writer, summary, outputs, point, write_input,
+                           one_wrench)
+
+    index = 0
     for batch in batches:
-        for log_time, publish_time, channel_id, data in batch:
+        position, size = 0, len(batch)
+        while position < size:
+            log_time, publish_time, channel_id, data = batch[position]
+            position += 1
             if skip:
                 index += 1
                 skip -= 1
                 continue
             if kept is not None and not mute and index % CHECKPOINT_EVERY == 0:
                 _keep(kept, index, summary, handler)
-            index += 1
             is_pose, write_input, count, type_name = routes.get(channel_id) or route(channel_id)
+            if not (is_pose or mute):     # a run of wrenches, up to the next checkpoint
+                end = min(size, position - 1 + (CHECKPOINT_EVERY - index % CHECKPOINT_EVERY
+                                                if kept is not None else size))
+                last = position
+                while last < end and batch[last][2] == channel_id:
+                    last += 1
+                done = wrench_run(batch[position - 1:last], write_input) if last > position \
+                    else 0
+                if done:
+                    index += done
+                    position += done - 1
+                    continue
+            index += 1
             try:
                 stamp_ns, frame, values = decode_stamped(data, count, type_name)
             except CdrError as err:
@@ -642,41 +695,73 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
                 _predict_quietly(handler, is_pose, stamp_ns, frame, values, summary)
                 continue
             write_input(data, log_time, publish_time)
-            if is_pose:
-                summary.poses += 1
-                try:
-                    update = handler.pose_values(stamp_ns, frame, values)
-                except InvalidMessage as exc:
-                    summary.rejected[f'pose:{exc.kind}'] += 1
-                    writer.write(DIAGNOSTICS_TOPIC, rejection_message(
-                        'pose', exc, pose, ns_to_stamp(stamp_ns)), log_time, log_time)
-                else:
-                    summary.poses_accepted += 1
-                    summary.rebuilds += int(update.rebuilt)
-                    eq = predictor.eq
-                    writer.write(tensions_topic, tensions_message(
-                        eq.geometry.cable_length_m, eq.tensions.tension_n, ns_to_stamp(stamp_ns),
-                        frame_id), log_time, log_time)
+            if not is_pose:
+                one_wrench(stamp_ns, frame, values, log_time)
+                continue
+            summary.poses += 1
+            try:
+                update = handler.pose_values(stamp_ns, frame, values)
+            except InvalidMessage as exc:
+                summary.rejected[f'pose:{exc.kind}'] += 1
+                writer.write(DIAGNOSTICS_TOPIC, rejection_message(
+                    'pose', exc, pose, ns_to_stamp(stamp_ns)), log_time, log_time)
             else:
-                summary.wrenches += 1
-                try:
-                    handler.wrench_values(stamp_ns, frame, values)
-                except InvalidMessage as exc:
-                    summary.rejected[f'wrench:{exc.kind}'] += 1
-                    writer.write(DIAGNOSTICS_TOPIC, rejection_message(
-                        'wrench', exc, wrench, ns_to_stamp(stamp_ns)), log_time, log_time)
-                else:
-                    summary.wrenches_accepted += 1
-                    summary.before_first_pose += not summary.poses_accepted
-                    out = predictor.prediction(point)
-                    write_displacement(encode_stamped(stamp_ns, frame_id, out.displacement_m),
-                                       log_time, log_time)
-                    write_predicted_pose(encode_stamped(
-                        stamp_ns, frame_id, (*out.position_m, *out.quaternion)),
-                        log_time, log_time)
+                summary.poses_accepted += 1
+                summary.rebuilds += int(update.rebuilt)
+                write_tensions(tensions_bytes(stamp_ns), log_time, log_time)
         if progress is not None:
             done = summary.inputs + summary.skipped
             progress(done, total)
+
+
+def restamped(data: bytes, stamp_ns: int) -> bytes:
+    """The CDR bytes of a message that starts with a Header, its stamp set to ``stamp_ns``
+    (as :func:`~msg_adapters.validation.ns_to_stamp` splits it)."""
+    stamp = ns_to_stamp(stamp_ns)
+    return b''.join((data[:4], _STAMP[data[:2]].pack(stamp.sec, stamp.nanosec), data[12:]))
+
+
+def _wrench_run(items: list, handler: InputHandler, writer: RecordingWriter,
+                summary: ReplaySummary, outputs: tuple, point: tuple, write_input,
+                one_wrench) -> int:
+    """The leading messages of a run of wrench messages ``items`` ((log time, publish time,
+    channel, bytes) of one channel) that share one layout
+    (:func:`~msg_adapters.mcap_schema.decode_stamped_run`), replayed at once; how many (0:
+    the first does not decode so, take it alone). They go through
+    :meth:`~msg_adapters.inputs.InputHandler.wrench_run` as far as it takes them and one by
+    one (``one_wrench``) where it stops; the inputs and predictions are written in the order
+    one message after the other would write them."""
+    count, stamps, frame, values = decode_stamped_run([item[3] for item in items], 6,
+                                                      WRENCH_TYPE)
+    channel = writer.channel_id(summary.wrench_topic)
+    start = 0
+    while start < count:
+        done, q = handler.wrench_run(stamps[start:count], frame, values[start:count])
+        if done:
+            end = start + done
+            displacement, position, quaternion = handler.predictor.predictions(q, point)
+            frame_id = handler.frame_id
+            log_times = [item[0] for item in items[start:end]]
+            datas = [None] * (3 * done)
+            datas[0::3] = [item[3] for item in items[start:end]]
+            datas[1::3] = encode_stamped_run(stamps[start:end], frame_id, displacement)
+            datas[2::3] = encode_stamped_run(stamps[start:end], frame_id,
+                                             np.hstack([position, quaternion]))
+            publish_times = [None] * (3 * done)
+            publish_times[0::3] = [item[1] for item in items[start:end]]
+            publish_times[1::3] = publish_times[2::3] = log_times
+            writer.write_many((channel, *outputs) * done, datas,
+                              [t for t in log_times for _ in range(3)], publish_times)
+            summary.wrenches += done
+            summary.wrenches_accepted += done
+            summary.before_first_pose += done if not summary.poses_accepted else 0
+            start = end
+        if start < count:
+            log_time, publish_time, _, data = items[start]
+            write_input(data, log_time, publish_time)
+            one_wrench(int(stamps[start]), frame, tuple(values[start].tolist()), log_time)
+            start += 1
+    return count
 
 
 def _keep(kept: dict, consumed: int, summary: ReplaySummary, handler: InputHandler) -> None:

@@ -14,6 +14,7 @@ import tempfile
 from pathlib import Path
 from typing import Mapping
 
+import numpy as np
 from mcap.records import MessageIndex
 
 from cdpr_dynamics.recording.base import (
@@ -146,6 +147,20 @@ class RecordingWriter:
         if entry is None:
             raise RecordingError(f'topic {topic} was not declared with add_topic')
         return entry['write']
+
+    def channel_id(self, topic: str) -> int:
+        """The channel of a declared topic, for :meth:`write_many`."""
+        self._check_open()
+        entry = self._topics.get(topic)
+        if entry is None:
+            raise RecordingError(f'topic {topic} was not declared with add_topic')
+        return entry['channel']
+
+    def write_many(self, channel_ids, datas, log_times, publish_times) -> None:
+        """CDR bytes on channels (:meth:`channel_id`) in order: what as many writes of
+        :meth:`channel_writer` would do, for a run of messages at once."""
+        self._check_open()
+        self._appender.many(channel_ids, datas, log_times, publish_times)
 
     def add_metadata(self, name: str, values: Mapping[str, str], now: bool = False) -> None:
         """A metadata record (string keys and values), written when the file is finished, or
@@ -322,6 +337,65 @@ class MessageAppender:
             if buffer.tell() > limit:
                 finalize()
         return write
+
+
+    def many(self, channel_ids, datas, log_times, publish_times) -> None:
+        """Messages in order, as :meth:`channel`'s writes one by one would add them (the same
+        records, indexes and chunk boundaries): the record heads of a chunk's share made in
+        one array, its records in one buffer write."""
+        count = len(datas)
+        if not count:
+            return
+        stats, chunk, counts = self._stats, self._chunk, self.counts
+        sizes = np.fromiter(map(len, datas), np.int64, count) + _MESSAGE_HEAD.size
+        channels = np.asarray(channel_ids, dtype=np.uint16)
+        logs = np.asarray(log_times, dtype=np.uint64)
+        publish = np.asarray(publish_times, dtype=np.uint64)
+        i = 0
+        while i < count:
+            buffer = chunk.record_writer._buffer
+            ends = buffer.tell() + np.cumsum(sizes[i:])
+            stop = i + min(int(np.searchsorted(ends, self._limit, side='right')) + 1,
+                           count - i)          # through the record that passes the limit
+            ends, part = ends[:stop - i], slice(i, stop)
+            heads = np.empty(stop - i, _HEAD_DTYPE)
+            heads['opcode'], heads['length'] = 0x05, sizes[part] - 9
+            heads['channel'], heads['log'], heads['publish'] = (channels[part], logs[part],
+                                                                publish[part])
+            sequences = heads['sequence']
+            offsets = (ends - sizes[part]).tolist()
+            mine = channels[part]
+            ids, first = np.unique(mine, return_index=True)
+            for channel_id in ids[np.argsort(first)].tolist():    # indexes in order of use
+                where = np.flatnonzero(mine == channel_id)
+                base = counts[channel_id]
+                sequences[where] = (base + 1 + np.arange(where.size)) & 0xFFFFFFFF
+                counts[channel_id] = base + where.size
+                index = chunk.message_indices.get(channel_id)
+                if index is None:
+                    index = chunk.message_indices[channel_id] = _MessageIndex(channel_id, [])
+                index.records.extend(zip(logs[part][where].tolist(),
+                                         [offsets[k] for k in where.tolist()]))
+            low, high = int(logs[part].min()), int(logs[part].max())
+            if chunk.num_messages == 0 or low < chunk.message_start_time:
+                chunk.message_start_time = low
+            chunk.message_end_time = max(chunk.message_end_time, high)
+            chunk.num_messages += stop - i
+            if stats.message_count == 0 or low < stats.message_start_time:
+                stats.message_start_time = low
+            stats.message_end_time = max(stats.message_end_time, high)
+            stats.message_count += stop - i
+            raw = heads.tobytes()
+            size = _MESSAGE_HEAD.size
+            buffer.write(b''.join(itertools.chain.from_iterable(zip(
+                [raw[k:k + size] for k in range(0, len(raw), size)], datas[i:stop]))))
+            i = stop
+            if int(ends[-1]) > self._limit:
+                self._finalize()
+
+
+_HEAD_DTYPE = np.dtype([('opcode', 'u1'), ('length', '<u8'), ('channel', '<u2'),
+                        ('sequence', '<u4'), ('log', '<u8'), ('publish', '<u8')])  # packed
 
 
 def partial_files(path) -> list:
