@@ -11,6 +11,7 @@ from cdpr_dynamics.analysis.pipeline import AnalysisError
 from cdpr_dynamics.analysis.config import ConfigError
 from cdpr_dynamics.dynamics.system import DynamicsError
 from cdpr_dynamics.analysis.live import LivePredictor, PoseUpdate
+from cdpr_dynamics.mechanics.robot import quaternion_to_matrix
 from msg_adapters.pose import check_pose, pose_fields
 from msg_adapters.stamps import StampClock, StampPolicy
 from msg_adapters.validation import InvalidMessage, clip
@@ -93,6 +94,17 @@ class InputHandler:
         self.pose_clock.accept(stamp)
         self.notice = stamp.note
         return update
+
+    def pose_still(self, stamp_ns: int, frame_id: str, values: tuple) -> bool:
+        """Whether :meth:`pose_values` of this pose leaves the model as it is: a pose it
+        rejects, or one within the tolerances of the current pose (no rebuild)."""
+        try:
+            pose = check_pose(stamp_ns, frame_id, values, self.frame_id,
+                              self.quaternion_tolerance)
+        except InvalidMessage:
+            return True
+        return not self.predictor.moved(np.asarray(pose.position_m, dtype=float),
+                                        quaternion_to_matrix(pose.quaternion))
 
     def wrench(self, msg, now_ns: int | None = None) -> np.ndarray:
         """Advance the integrator to the wrench's time; the displacement (3,) m there."""

@@ -592,6 +592,11 @@ def _restore(record: dict, summary: ReplaySummary, handler: InputHandler) -> int
     return int(record['consumed'])
 
 
+#: input messages replayed at once at most (a run: wrenches, and the poses between them that
+#: leave the model as it is)
+RUN_INPUTS = 4096
+
+
 def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler,
                     writer: RecordingWriter, options: NodeOptions, total: int, progress,
                     skip_bad: bool, mute: int = 0, skip: int = 0,
@@ -603,88 +608,48 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
     passed over (a resumed replay restored from its checkpoint). Every CHECKPOINT_EVERY input
     messages, ``kept`` takes the state to resume from (:func:`_checkpoint_record`).
 
-    A run of wrenches (consecutive messages of the wrench topic between two poses) goes
-    through as a whole where it can (:func:`_wrench_run`): decoded, checked, predicted and
-    written at once, the same messages as one by one."""
-    predictor = handler.predictor
-    frame_id = handler.frame_id
-    point = options.output_point_m
-    pose, wrench = summary.pose_topic, summary.wrench_topic
-    write_displacement = writer.channel_writer(f'{_namespace(wrench)}/predicted_displacement')
-    write_predicted_pose = writer.channel_writer(f'{_namespace(wrench)}/predicted_pose')
-    outputs = (writer.channel_id(f'{_namespace(wrench)}/predicted_displacement'),
-               writer.channel_id(f'{_namespace(wrench)}/predicted_pose'))
-    write_tensions = writer.channel_writer(f'{_namespace(pose)}/cable_tensions')
-    tensions = {}    # the equilibrium's cable_tensions bytes: only its stamp changes
-
-    def tensions_bytes(stamp_ns: int) -> bytes:
-        eq = predictor.eq
-        if tensions.get('eq') is not eq:
-            tensions.update(eq=eq, data=serialize(tensions_message(
-                eq.geometry.cable_length_m, eq.tensions.tension_n, ns_to_stamp(stamp_ns),
-                frame_id)))
-        return restamped(tensions['data'], stamp_ns)
+    Runs of inputs that share one model - wrenches, and the poses between them that do not
+    move it (:meth:`~msg_adapters.inputs.InputHandler.pose_still`) - go through at once
+    (:class:`_Outputs`, :func:`_replay_run`): the same messages as one by one."""
+    out = _Outputs(handler, writer, summary, options.output_point_m)
+    pose = summary.pose_topic
     routes = {}
 
     def route(channel_id: int) -> tuple:
-        topic = mcap.channels[channel_id].topic
-        is_pose = topic == pose
-        routes[channel_id] = (is_pose, writer.channel_writer(topic), 7 if is_pose else 6,
-                              POSE_TYPE if is_pose else WRENCH_TYPE)
+        is_pose = mcap.channels[channel_id].topic == pose
+        routes[channel_id] = (is_pose, 7 if is_pose else 6, POSE_TYPE if is_pose else WRENCH_TYPE)
         return routes[channel_id]
-
-    def one_wrench(stamp_ns, frame, values, log_time) -> None:
-        summary.wrenches += 1
-        try:
-            handler.wrench_values(stamp_ns, frame, values)
-        except InvalidMessage as exc:
-            summary.rejected[f'wrench:{exc.kind}'] += 1
-            writer.write(DIAGNOSTICS_TOPIC, rejection_message(
-                'wrench', exc, wrench, ns_to_stamp(stamp_ns)), log_time, log_time)
-        else:
-            summary.wrenches_accepted += 1
-            summary.before_first_pose += not summary.poses_accepted
-            out = predictor.prediction(point)
-            write_displacement(encode_stamped(stamp_ns, frame_id, out.displacement_m),
-                               log_time, log_time)
-            write_predicted_pose(encode_stamped(
-                stamp_ns, frame_id, (*out.position_m, *out.quaternion)), log_time, log_time)
-
-    def wrench_run(items, write_input) -> int:
-        return _wrench_run(items, handler, writer, summary, outputs, point, write_input,
-                           one_wrench)
 
     index = 0
     for batch in batches:
         position, size = 0, len(batch)
         while position < size:
             log_time, publish_time, channel_id, data = batch[position]
-            position += 1
             if skip:
                 index += 1
                 skip -= 1
+                position += 1
                 continue
             if kept is not None and not mute and index % CHECKPOINT_EVERY == 0:
                 _keep(kept, index, summary, handler)
-            is_pose, write_input, count, type_name = routes.get(channel_id) or route(channel_id)
-            if not (is_pose or mute):     # a run of wrenches, up to the next checkpoint
-                end = min(size, position - 1 + (CHECKPOINT_EVERY - index % CHECKPOINT_EVERY
-                                                if kept is not None else size))
-                last = position
-                while last < end and batch[last][2] == channel_id:
-                    last += 1
-                done = wrench_run(batch[position - 1:last], write_input) if last > position \
-                    else 0
+            is_pose, count, type_name = routes.get(channel_id) or route(channel_id)
+            if not (is_pose or mute):
+                limit = min(RUN_INPUTS, CHECKPOINT_EVERY - index % CHECKPOINT_EVERY
+                            if kept is not None else RUN_INPUTS)
+                done = _replay_run(batch, position, limit, channel_id, out,
+                                   routes.get, route)
                 if done:
                     index += done
-                    position += done - 1
+                    position += done
                     continue
             index += 1
+            position += 1
             try:
                 stamp_ns, frame, values = decode_stamped(data, count, type_name)
             except CdrError as err:
                 bad = (f'{mcap.path}: cannot decode message {index - 1} (a {type_name} on '
-                       f'{pose if is_pose else wrench} at log time {log_time}): {err}')
+                       f'{pose if is_pose else summary.wrench_topic} at log time '
+                       f'{log_time}): {err}')
                 if not skip_bad:
                     raise UndecodableMessage(bad) from None
                 summary.skipped += 1
@@ -694,24 +659,88 @@ def _replay_batches(batches, mcap, summary: ReplaySummary, handler: InputHandler
                 mute -= 1
                 _predict_quietly(handler, is_pose, stamp_ns, frame, values, summary)
                 continue
-            write_input(data, log_time, publish_time)
-            if not is_pose:
-                one_wrench(stamp_ns, frame, values, log_time)
-                continue
-            summary.poses += 1
-            try:
-                update = handler.pose_values(stamp_ns, frame, values)
-            except InvalidMessage as exc:
-                summary.rejected[f'pose:{exc.kind}'] += 1
-                writer.write(DIAGNOSTICS_TOPIC, rejection_message(
-                    'pose', exc, pose, ns_to_stamp(stamp_ns)), log_time, log_time)
+            records = [(channel_id, data, log_time, publish_time)]
+            if is_pose:
+                out.pose(stamp_ns, frame, values, log_time, records)
             else:
-                summary.poses_accepted += 1
-                summary.rebuilds += int(update.rebuilt)
-                write_tensions(tensions_bytes(stamp_ns), log_time, log_time)
+                out.wrench(stamp_ns, frame, values, log_time, records)
+            out.write(records)
         if progress is not None:
             done = summary.inputs + summary.skipped
             progress(done, total)
+
+
+class _Outputs:
+    """What the replay writes for its inputs, as records (channel, CDR bytes, log time,
+    publish time) in the order the node would publish them."""
+
+    def __init__(self, handler: InputHandler, writer: RecordingWriter,
+                 summary: ReplaySummary, point: tuple):
+        self.handler, self.writer, self.summary, self.point = handler, writer, summary, point
+        self.predictor = handler.predictor
+        self.frame_id = handler.frame_id
+        wrench_ns, pose_ns = _namespace(summary.wrench_topic), _namespace(summary.pose_topic)
+        self.displacement = writer.channel_id(f'{wrench_ns}/predicted_displacement')
+        self.predicted_pose = writer.channel_id(f'{wrench_ns}/predicted_pose')
+        self.tensions = writer.channel_id(f'{pose_ns}/cable_tensions')
+        self.diagnostics = writer.channel_id(DIAGNOSTICS_TOPIC)
+        self._tensions = (None, b'')     # an equilibrium's cable_tensions bytes
+
+    def write(self, records: list) -> None:
+        if records:
+            self.writer.write_many(*zip(*records))
+
+    def rejected(self, what: str, exc: InvalidMessage, stamp_ns: int, log_time: int,
+                 records: list) -> None:
+        self.summary.rejected[f'{what}:{exc.kind}'] += 1
+        topic = self.summary.pose_topic if what == 'pose' else self.summary.wrench_topic
+        records.append((self.diagnostics, serialize(rejection_message(
+            what, exc, topic, ns_to_stamp(stamp_ns))), log_time, log_time))
+
+    def pose(self, stamp_ns: int, frame: str, values: tuple, log_time: int,
+             records: list) -> None:
+        """A pose through the handler: its cable_tensions or its diagnostic."""
+        summary = self.summary
+        summary.poses += 1
+        try:
+            update = self.handler.pose_values(stamp_ns, frame, values)
+        except InvalidMessage as exc:
+            self.rejected('pose', exc, stamp_ns, log_time, records)
+            return
+        summary.poses_accepted += 1
+        summary.rebuilds += int(update.rebuilt)
+        eq, data = self._tensions
+        if eq is not self.predictor.eq:           # only the stamp changes between rebuilds
+            eq = self.predictor.eq
+            data = serialize(tensions_message(eq.geometry.cable_length_m, eq.tensions.tension_n,
+                                              ns_to_stamp(stamp_ns), self.frame_id))
+            self._tensions = eq, data
+        records.append((self.tensions, restamped(data, stamp_ns), log_time, log_time))
+
+    def wrench(self, stamp_ns: int, frame: str, values: tuple, log_time: int,
+               records: list) -> None:
+        """A wrench through the handler alone: its predictions or its diagnostic."""
+        summary = self.summary
+        summary.wrenches += 1
+        try:
+            self.handler.wrench_values(stamp_ns, frame, values)
+        except InvalidMessage as exc:
+            self.rejected('wrench', exc, stamp_ns, log_time, records)
+            return
+        summary.wrenches_accepted += 1
+        summary.before_first_pose += not summary.poses_accepted
+        out = self.predictor.prediction(self.point)
+        records.append((self.displacement, encode_stamped(stamp_ns, self.frame_id,
+                                                          out.displacement_m),
+                        log_time, log_time))
+        records.append((self.predicted_pose, encode_stamped(
+            stamp_ns, self.frame_id, (*out.position_m, *out.quaternion)), log_time, log_time))
+
+    def predictions(self, stamps: np.ndarray, q: np.ndarray) -> tuple[list, list]:
+        """The predicted_displacement and predicted_pose bytes of platform states ``q``."""
+        displacement, position, quaternion = self.predictor.predictions(q, self.point)
+        return (encode_stamped_run(stamps, self.frame_id, displacement),
+                encode_stamped_run(stamps, self.frame_id, np.hstack([position, quaternion])))
 
 
 def restamped(data: bytes, stamp_ns: int) -> bytes:
@@ -721,47 +750,81 @@ def restamped(data: bytes, stamp_ns: int) -> bytes:
     return b''.join((data[:4], _STAMP[data[:2]].pack(stamp.sec, stamp.nanosec), data[12:]))
 
 
-def _wrench_run(items: list, handler: InputHandler, writer: RecordingWriter,
-                summary: ReplaySummary, outputs: tuple, point: tuple, write_input,
-                one_wrench) -> int:
-    """The leading messages of a run of wrench messages ``items`` ((log time, publish time,
-    channel, bytes) of one channel) that share one layout
-    (:func:`~msg_adapters.mcap_schema.decode_stamped_run`), replayed at once; how many (0:
-    the first does not decode so, take it alone). They go through
+def _replay_run(batch: list, position: int, limit: int, wrench_channel: int, out: _Outputs,
+                known, route) -> int:
+    """Replay the run of inputs that starts with the wrench at ``batch[position]``, at most
+    ``limit`` messages: wrench messages of one layout
+    (:func:`~msg_adapters.mcap_schema.decode_stamped_run`) and, once a pose was accepted,
+    the poses between them that leave the model as it is. Their wrenches go through
     :meth:`~msg_adapters.inputs.InputHandler.wrench_run` as far as it takes them and one by
-    one (``one_wrench``) where it stops; the inputs and predictions are written in the order
-    one message after the other would write them."""
-    count, stamps, frame, values = decode_stamped_run([item[3] for item in items], 6,
+    one where it stops, the poses after them (the model is the same for all), and the records
+    are written in input order. The number of messages replayed (0: none, go one by one)."""
+    handler, summary = out.handler, out.summary
+    end = min(len(batch), position + limit)
+    wrenches, poses = [], []          # (place in the run, item); (place, item, fields)
+    stop = position
+    while stop < end:
+        item = batch[stop]
+        if item[2] == wrench_channel:
+            wrenches.append((stop - position, item))
+        else:
+            is_pose, count, type_name = known(item[2]) or route(item[2])
+            if not (is_pose and summary.poses_accepted):
+                break
+            try:
+                fields = decode_stamped(item[3], count, type_name)
+            except CdrError:
+                break
+            if not handler.pose_still(*fields):
+                break
+            poses.append((stop - position, item, fields))
+        stop += 1
+    count, stamps, frame, values = decode_stamped_run([item[3] for _, item in wrenches], 6,
                                                       WRENCH_TYPE)
-    channel = writer.channel_id(summary.wrench_topic)
-    start = 0
+    if count < 2:
+        return 0
+    if count < len(wrenches):         # the run ends before the first of another layout
+        stop = position + wrenches[count][0]
+        wrenches = wrenches[:count]
+        poses = [p for p in poses if p[0] < stop - position]
+    first_pose = summary.poses_accepted
+    outputs = [None] * count          # per wrench: its records after the input, or None
+    batched, rows, start = [], [], 0
     while start < count:
-        done, q = handler.wrench_run(stamps[start:count], frame, values[start:count])
+        done, q = handler.wrench_run(stamps[start:], frame, values[start:])
         if done:
-            end = start + done
-            displacement, position, quaternion = handler.predictor.predictions(q, point)
-            frame_id = handler.frame_id
-            log_times = [item[0] for item in items[start:end]]
-            datas = [None] * (3 * done)
-            datas[0::3] = [item[3] for item in items[start:end]]
-            datas[1::3] = encode_stamped_run(stamps[start:end], frame_id, displacement)
-            datas[2::3] = encode_stamped_run(stamps[start:end], frame_id,
-                                             np.hstack([position, quaternion]))
-            publish_times = [None] * (3 * done)
-            publish_times[0::3] = [item[1] for item in items[start:end]]
-            publish_times[1::3] = publish_times[2::3] = log_times
-            writer.write_many((channel, *outputs) * done, datas,
-                              [t for t in log_times for _ in range(3)], publish_times)
-            summary.wrenches += done
-            summary.wrenches_accepted += done
-            summary.before_first_pose += done if not summary.poses_accepted else 0
-            start = end
+            batched.append(np.arange(start, start + done))
+            rows.append(q)
+            start += done
         if start < count:
-            log_time, publish_time, _, data = items[start]
-            write_input(data, log_time, publish_time)
-            one_wrench(int(stamps[start]), frame, tuple(values[start].tolist()), log_time)
+            outputs[start] = records = []
+            out.wrench(int(stamps[start]), frame, tuple(values[start].tolist()),
+                       wrenches[start][1][0], records)
             start += 1
-    return count
+    accepted = 0
+    if batched:
+        batched = np.concatenate(batched)
+        displacement, predicted = out.predictions(stamps[batched], np.concatenate(rows))
+        for k, d, p in zip(batched.tolist(), displacement, predicted):
+            log_time = wrenches[k][1][0]
+            outputs[k] = [(out.displacement, d, log_time, log_time),
+                          (out.predicted_pose, p, log_time, log_time)]
+        accepted = len(batched)
+        summary.wrenches += accepted
+        summary.wrenches_accepted += accepted
+        summary.before_first_pose += accepted if not first_pose else 0
+    placed = {}
+    for place, item, fields in poses:    # they leave the model as it is: after the wrenches
+        placed[place] = records = []
+        out.pose(*fields, item[0], records)
+    records = []
+    wrench_outputs = iter(outputs)
+    for place in range(stop - position):
+        log_time, publish_time, channel_id, data = batch[position + place]
+        records.append((channel_id, data, log_time, publish_time))
+        records.extend(placed[place] if place in placed else next(wrench_outputs))
+    out.write(records)
+    return stop - position
 
 
 def _keep(kept: dict, consumed: int, summary: ReplaySummary, handler: InputHandler) -> None:

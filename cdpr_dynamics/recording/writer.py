@@ -338,7 +338,6 @@ class MessageAppender:
                 finalize()
         return write
 
-
     def many(self, channel_ids, datas, log_times, publish_times) -> None:
         """Messages in order, as :meth:`channel`'s writes one by one would add them (the same
         records, indexes and chunk boundaries): the record heads of a chunk's share made in
