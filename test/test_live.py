@@ -259,3 +259,45 @@ def test_a_checkpoint_of_another_model_is_refused():
     assert not same_model(other, running.checkpoint())
     with pytest.raises(ValueError, match='differs'):
         other.restore(running.checkpoint())
+
+
+@pytest.mark.parametrize('method, elements, slack', [('spring', 1, 'aware'),
+                                                     ('fem', 4, 'aware'),
+                                                     ('fem', 4, 'linear')])
+def test_a_run_of_wrenches_advances_as_each_wrench_alone(method, elements, slack):
+    """advance_run over a wrench stream equals advance wrench by wrench bit for bit (state,
+    platform q after each wrench, slack time, held load): 200 N at 5 Hz with a 1500 N push
+    that slackens cables (the run stops before the wrench whose steps reach slack and advance
+    takes it), intervals of 0, 1, 2 and 150 steps (closed form or capped: advance's) and
+    sub-step remainders."""
+    settings = load_settings().replace(method=method, elements_per_cable=elements)
+    alone, run = LivePredictor(settings, slack=slack), LivePredictor(settings, slack=slack)
+    gaps = np.tile([1_000_000, 1_000_000, 0, 2_000_000, 1_300_000, 700_000], 100)
+    gaps[250] = 150_000_000
+    stamps = 1_700_000_000_000_000_000 + np.cumsum(gaps)
+    force = np.zeros((stamps.size, 3))
+    force[:, 2] = 200.0 * np.sin(2 * np.pi * 5.0 * (stamps - stamps[0]) * 1e-9)
+    force[300:340, 2] = 1500.0                      # a 40-wrench push that slackens cables
+    moment = np.zeros((stamps.size, 3))
+    q_alone = np.array([alone.advance(int(t), f, m) for t, f, m in zip(stamps, force, moment)])
+    q_run, start, alone_calls = [], 0, 0
+    while start < stamps.size:
+        done, q = run.advance_run(stamps[start:], force[start:], moment[start:])
+        q_run.extend(q[:, :3])
+        start += done
+        if start < stamps.size:
+            q_run.append(run.advance(int(stamps[start]), force[start], moment[start]))
+            start += 1
+            alone_calls += 1
+    assert np.array_equal(np.array(q_run), q_alone)
+    assert np.array_equal(run.integrator._state, alone.integrator._state)
+    assert run.slack_time_s == alone.slack_time_s
+    assert np.array_equal(run._load, alone._load) and run._remainder_ns == alone._remainder_ns
+    if slack == 'aware':
+        assert alone.slack_time_s > 0.01           # slack for a while, and the runs stopped
+        assert 10 < alone_calls < stamps.size / 4   # for it, but most wrenches went in runs
+    disp, position, quaternion = run.predictions(np.array(q_run)[-5:], (0.0, 0.0, 0.0))
+    single = run.prediction()
+    assert np.array_equal(disp[-1], single.displacement_m)
+    assert np.array_equal(position[-1], single.position_m)
+    assert np.array_equal(quaternion[-1], single.quaternion)

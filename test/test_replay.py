@@ -1092,3 +1092,84 @@ def test_a_replay_that_lacks_the_pose_before_a_wrench_says_so(tmp_path):
                       *GOLDEN_ARGS, '--no-progress')
     assert done.returncode == 0, done.stderr
     assert f'cdpr_replay: warning: {late}' in done.stderr.splitlines()
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def mixed_log(path: Path, position) -> None:
+    """600 wrenches at 1 kHz (200 N at 5 Hz, a 40-wrench 1500 N push that slackens cables)
+    with refused ones among them (not finite, out of order, another frame, unstamped,
+    infeasible), and a pose every 20 wrenches: the same pose, one that moves, one refused, and
+    back."""
+    from builtin_interfaces.msg import Time
+
+    def stamp(ns: int) -> Time:
+        return Time(sec=ns // 10**9, nanosec=ns % 10**9)
+
+    t0 = scenarios.T0_NS
+    moved = np.asarray(position) + (0.01, 0.0, 0.0)
+    with RecordingWriter(path) as writer:
+        writer.add_topic('/pose', POSE, scenarios.QOS)
+        writer.add_topic('/wrench', WRENCH, scenarios.QOS)
+        writer.write('/pose', pose_message(position, (0.0, 0.0, 0.0, 1.0), 'world',
+                                           stamp(t0 - 1000)), t0 - 1000)
+        for k in range(600):
+            ns = t0 + k * 1_000_000
+            load = 1500.0 if 300 <= k < 340 else 200.0 * np.sin(2 * np.pi * 5.0 * k * 1e-3)
+            frame, at = 'world', ns
+            load, at, frame = {50: (float('nan'), at, frame), 60: (load, ns - 3_000_000, frame),
+                               70: (load, at, 'other'), 80: (load, 0, frame),
+                               90: (1e7, at, frame)}.get(k, (load, at, frame))
+            writer.write('/wrench', wrench_message((0.0, 0.0, load), (0.0, 0.0, 0.0), frame,
+                                                   stamp(at)), ns)
+            if k % 20 == 10:
+                where, quaternion = {210: (moved, (0.0, 0.0, 0.0, 1.0)),
+                                     230: (moved, (0.0, 0.0, 0.0, 2.0))}.get(
+                    k, (moved if 210 < k < 400 else position, (0.0, 0.0, 0.0, 1.0)))
+                writer.write('/pose', pose_message(where, quaternion, 'world', stamp(ns)), ns)
+
+
+@pytest.mark.parametrize('source, method', [('mixed', 'spring'), ('mixed', 'fem'),
+                                            *((name, 'fem') for name in scenarios.SCENARIOS)])
+def test_runs_write_what_one_input_at_a_time_writes(source, method, tmp_path, monkeypatch):
+    """Runs of inputs replayed at once (the default) write the file that replaying one input
+    message at a time writes, byte for byte: every golden scenario's inputs and a log with
+    refused wrenches and poses amid the runs, a pose that moves the model and a push that
+    slackens cables (slack-aware steps in the middle of a run)."""
+    from cdpr_dynamics.analysis.live import LivePredictor
+    from cdpr_dynamics.recording import replay
+
+    settings, options = golden_settings(method=method)
+    if source == 'mixed':
+        path = tmp_path / 'mixed.mcap'
+        mixed_log(path, settings.initial_position_m)
+    else:
+        path = golden(source)
+    counts = {'run': 0, 'slack': 0}
+    wrench_run, enter_slack = replay.InputHandler.wrench_run, LivePredictor._enter_slack
+
+    def counted_run(self, *args):
+        done, q = wrench_run(self, *args)
+        counts['run'] += done
+        return done, q
+
+    def counted_slack(self, *args, **kwargs):
+        counts['slack'] += 1
+        return enter_slack(self, *args, **kwargs)
+    monkeypatch.setattr(replay.InputHandler, 'wrench_run', counted_run)
+    monkeypatch.setattr(LivePredictor, '_enter_slack', counted_slack)
+    (tmp_path / 'runs').mkdir()
+    (tmp_path / 'single').mkdir()
+    runs = replay_offline(path, tmp_path / 'runs' / 'out.mcap', settings, options=options)
+    assert counts['run'] > runs.wrenches_accepted / 2
+    if source == 'mixed':
+        assert counts['slack'] and runs.rebuilds == 2 and runs.poses_accepted < runs.poses
+        assert runs.wrenches - runs.wrenches_accepted == 5
+    monkeypatch.setattr(replay, 'RUN_INPUTS', 1)
+    counts['run'] = 0
+    single = replay_offline(path, tmp_path / 'single' / 'out.mcap', settings, options=options)
+    assert counts['run'] == 0
+    assert (runs.rejected, runs.wrenches_accepted) == (single.rejected, single.wrenches_accepted)
+    assert ((tmp_path / 'runs' / 'out.mcap').read_bytes()
+            == (tmp_path / 'single' / 'out.mcap').read_bytes())

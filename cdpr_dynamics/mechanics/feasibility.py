@@ -236,7 +236,8 @@ class WrenchSet:
         external[:, :3] = force_n
         if d == 6:
             external[:, 3:6] = moment_nm
-        return (external @ test.T).max(axis=1, initial=-np.inf) <= 0.0
+        with np.errstate(invalid='ignore'):        # NaN: not inside, reason says why
+            return (external @ test.T).max(axis=1, initial=-np.inf) <= 0.0
 
     def symmetric_limit(self, force_n, moment_nm=(0.0, 0.0, 0.0)) -> float:
         """The largest s >= 0 with both +s f and -s f feasible (f = (force, moment), the
