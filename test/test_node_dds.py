@@ -874,19 +874,29 @@ def test_flood_of_wrenches(ros):
         (ros['log_dir'] / 'flood_report.txt').write_text(report + '\n')
         assert sent['sent'] >= 0.8 * 5000 * 10
         # behaviour, not speed (rates are cdpr_bench --dds's): wrenches were predicted, and the
-        # newest win (the best-effort queue drops the oldest): the last prediction of the
-        # flood is within 0.5 s of its last stamp, not stuck on old wrenches
-        newest = (sent['last_stamp_s'] - 0.5) * 1e9      # once the queue has drained
-        assert flood.wait(lambda: max(flood.predictions) >= newest, 60.0), report
-        flooded = [t for t in flood.predictions if t <= sent['last_stamp_s'] * 1e9 + 1]
-        assert accepted > 0 and max(flooded) >= newest, report
+        # newest win: the best-effort queue keeps the newest node.wrench_queue_depth (1000), so a
+        # wrench sent after the flood is predicted once that short queue has drained (~1.5 s at
+        # the slowest rate seen, 650/s), not after the ~40 000 older ones a first-in first-out
+        # queue would hold (over a minute). Sent again with a new stamp every 0.5 s: on a
+        # starved host the transport itself may drop a message (the flood's own last stamps
+        # are no test for the same reason)
+        assert accepted > 0, report
+        fresh = []
+
+        def answered():
+            fresh.append(flood.next_stamp(0.005))
+            flood.wrench_pub.publish(wrench_message([0.0, 0.0, 100.0], frame_id=flood.frame,
+                                                    stamp=fresh[-1]))
+            return flood.wait(lambda: any(stamp_to_ns(s) in flood.predictions for s in fresh),
+                              0.5)
+
+        start = time.monotonic()
+        while not answered():
+            assert time.monotonic() - start < 20.0, f'nothing after the flood predicted; {report}'
         assert growth_mib < 50.0, report
         # still answers; the state carries on from the flood (the mirror never saw it), so
         # this prediction is checked for being there, not against the mirror
-        stamp = flood.next_stamp(0.005)
-        flood.wrench_pub.publish(wrench_message([0.0, 0.0, 100.0], frame_id=flood.frame,
-                                                stamp=stamp))
-        assert flood.wait(lambda: stamp_to_ns(stamp) in flood.predictions)
+        stamp = next(s for s in fresh if stamp_to_ns(s) in flood.predictions)
         assert np.all(np.isfinite(flood.predictions[stamp_to_ns(stamp)]))
         assert flood.frf(['amplitude_z_m'])['amplitude_z_m'].size == 391
     finally:
