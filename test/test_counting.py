@@ -39,6 +39,8 @@ REPO = Path(__file__).resolve().parents[1]
 PAPER = load_settings(REPO / 'config' / 'paper_cdpr.yaml')
 RIGID = load_settings(REPO / 'test' / 'data' / 'rigid_cdpr.yaml')
 HEAVY = load_settings(REPO / 'config' / 'heavy_sag_6dof.yaml')
+SAGGING = load_settings(REPO / 'test' / 'data' / 'sagging_6dof.yaml')
+COGIRO = load_settings(REPO / 'test' / 'data' / 'cogiro_heavy_sag.yaml')
 OFF_CENTRE = np.array([0.35, -0.2, 1.0])        # unequal cable lengths and tensions
 SAME = 1e-7                                      # dense eigenvalues this close: one frequency
 TOL = 2 * np.pi * counting.TOL_HZ                # rad/s: the counter's bracket width
@@ -88,6 +90,9 @@ CASES = [
     pytest.param(RIGID, None, 'fem', 6, id='rigid6dof-fem6'),
     pytest.param(RIGID, np.array([0.2, 0.1, 1.1]), 'fem', 6, id='rigid6dof-moved-fem6'),
     pytest.param(HEAVY, None, 'fem_sag', 8, id='heavy-sag-fem_sag8'),
+    pytest.param(HEAVY, np.array([0.3, 0.4, 1.5]), 'fem_sag', 16, id='heavy-sag-moved-fem_sag16'),
+    pytest.param(SAGGING, None, 'fem_sag', 12, id='sagging6dof-fem_sag12'),
+    pytest.param(COGIRO, None, 'fem_sag', 10, id='cogiro-heavy-sag-fem_sag10'),
 ]
 
 
@@ -295,6 +300,47 @@ def test_counted_frequencies_equal_the_dense_eigensolver(settings, position, met
     dense_hz = np.sqrt(values) / (2 * np.pi)
     # Newton's zeros are exact to round-off: far inside the 1e-9 Hz brackets
     np.testing.assert_allclose(found.frequency_hz, dense_hz, rtol=1e-10)
+
+
+@pytest.mark.parametrize('settings, position, n', [(HEAVY, None, 16), (HEAVY, None, 64),
+                                                   (COGIRO, None, 24),
+                                                   (PAPER, OFF_CENTRE, 12)])
+def test_planar_chains_count_as_the_general_3d_ldl(settings, position, n):
+    """fem_sag's chains split into their planes (2x2 and scalar pivots) count the clamped
+    eigenvalues below each lam exactly as the block LDL^T of the whole 3x3 chains (away from
+    the eigenvalues themselves), and condense to the same end stiffness (real and complex
+    lam), which the flexibility series of the model gives independently."""
+    eq = equilibrium(settings, position, method='fem_sag')
+    system = build_system(settings, eq, 'fem_sag', n)
+    planar = counting.counter(system).interior
+    assert isinstance(planar, counting._PlanarChainInterior)
+    general = counting._ChainInterior(system.assembly.blocks)
+    lam = np.linspace(0.0, (2 * np.pi * settings.f_max_hz) ** 2, 301)[1:]
+    count, ends = planar.sweep(lam)
+    count_ref, ends_ref = general.sweep(lam)
+    series = system.assembly.end_stiffness(lam).real
+    exact = np.abs(planar.last_det) > 1e-6 * np.abs(planar.last_det).max()  # off the poles
+    assert count[-1].sum() > 0 and np.array_equal(count[exact], count_ref[exact])
+    # near a clamped eigenvalue both LDL^T forms lose digits to the pole (the series does
+    # not): compared away from the poles, the planar split as close to the series as the
+    # 3x3 LDL^T (both lose digits to the stiff axial terms)
+    scale = np.abs(series).max(axis=(2, 3), keepdims=True)
+    size = scale[..., 0, 0]
+    far = exact & (size < 10.0 * np.median(size, axis=0))
+    error, error_ref = (np.abs(a[far] - series[far]) / scale[far] for a in (ends, ends_ref))
+    assert np.median(error) < 1e-10 and error.max() < max(10.0 * error_ref.max(), 1e-9)
+    step = lam[:40] + 1e-20j * lam[:40]
+    np.testing.assert_allclose(planar.sweep(step, count=False)[1],
+                               general.sweep(step, count=False)[1],
+                               rtol=0, atol=1e-8 * np.abs(ends_ref[:40]).max())
+
+
+def test_chains_with_anchor_ends_take_the_general_ldl():
+    """An anchor end in series makes the first element's block 3D: no plane basis."""
+    settings = load_settings(REPO / 'config' / 'paper_pulleys.yaml')
+    system = build_system(settings, equilibrium(settings, method='fem_sag'), 'fem_sag', 6)
+    assert system.assembly.plane_basis is None
+    assert type(counting.counter(system).interior) is counting._ChainInterior
 
 
 def test_closed_form_clamped_ends_equal_inverse_iteration():

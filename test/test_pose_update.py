@@ -115,6 +115,27 @@ def test_pair_normals_are_the_pairwise_cross_products(config):
     assert np.array_equal(_facet_normals(wt, full_rank=True), _normals_of(wt, _subsets(8, 5)))
 
 
+def test_six_dof_normals_are_the_null_vectors_of_each_subset():
+    """d = 6: the generalised cross products are, up to sign, the null vectors LAPACK's SVD
+    gives each subset of 5 generators; a subset with two parallel generators is dropped."""
+    rigid = load_settings(RIGID)
+    rng = np.random.default_rng(3)
+    for k in range(10):
+        wt = geometry(rigid.robot, rigid.initial_position_m
+                      + rng.normal(0.0, 0.1, 3)).structure_matrix
+        if k == 1:
+            wt[:, 6] = 2.0 * wt[:, 1]
+        subsets = _subsets(8, 5)
+        _, sing, vt = np.linalg.svd(wt.T[subsets])
+        spanning = sing[:, -1] > 1e-9 * sing[:, 0]
+        normals = _normals_of(wt, subsets)
+        assert normals.shape[0] == spanning.sum() == (56 - 20 if k == 1 else 56)
+        assert_allclose(np.abs(np.einsum('ki,ki->k', normals, vt[spanning, -1])), 1.0,
+                        rtol=1e-12)
+        assert np.abs(wt.T[subsets[spanning]] @ normals[..., None]).max() < 1e-12 * np.abs(
+            wt).max()
+
+
 def _walk_wrenches(settings, n, seed, force_n):
     """Nearby poses, the external force ``force_n`` switched off, on and raised by 40 % every
     25 poses: tensions on T_min, on T_max (the paper robot) and out of reach."""

@@ -103,14 +103,28 @@ def _rank_full(wt: np.ndarray) -> bool:
 
 
 def _normals_of(wt: np.ndarray, subsets: np.ndarray) -> np.ndarray:
-    """Unit normals (k, d) of the hyperplanes spanned by the generator ``subsets`` (k, d-1)."""
+    """Unit normals (k, d) of the hyperplanes spanned by the generator ``subsets`` (k, d-1).
+
+    d > 3: the generalised cross product of the d - 1 generators g (rows of A), component i
+    (-1)^i det(A without column i), orthogonal to every g; its length is the volume they
+    span, and subsets whose volume is at most 1e-9 of the product of their lengths (nearly
+    dependent generators) span no hyperplane."""
     d = wt.shape[0]
     if d == 3:
-        normals = cross(wt.T[subsets[:, 0]], wt.T[subsets[:, 1]])
-    else:
-        _, sing, vt = np.linalg.svd(wt.T[subsets])    # null vector: last right singular vector
-        normals = vt[:, -1, :][sing[:, -1] > 1e-9 * sing[:, 0]]
-    return _unit_rows(normals)
+        return _unit_rows(cross(wt.T[subsets[:, 0]], wt.T[subsets[:, 1]]))
+    a = wt.T[subsets]                                                     # (k, d - 1, d)
+    cols, sign = _minor_columns(d)
+    normals = np.linalg.det(a[:, :, cols].transpose(0, 2, 1, 3)) * sign   # (k, d)
+    volume = row_norm(normals)
+    keep = volume > 1e-9 * np.prod(row_norm(a), axis=1)
+    return normals[keep] / volume[keep, None]
+
+
+@lru_cache(maxsize=4)
+def _minor_columns(d: int) -> tuple[np.ndarray, np.ndarray]:
+    """((d, d - 1) the columns left in each minor of a (d - 1, d) matrix, (d,) its sign)."""
+    return np.array([[j for j in range(d) if j != i] for i in range(d)]), \
+        (-1.0) ** np.arange(d)
 
 
 @lru_cache(maxsize=16)

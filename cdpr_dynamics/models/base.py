@@ -145,6 +145,9 @@ class CableAssembly:
     # optional shortcuts of end_stiffness (the same numbers, cheaper for the platform sums):
     decoupled: 'AxialTransverse | None' = None     # S_i = a_i u u^T + t_i (I - u u^T)
     constant_stiffness: np.ndarray | None = None   # (n, 3, 3) real: S_i(lam) for every lam
+    # (n, 3, 3) rows: two in-plane axes and the normal of the plane each chain lies in (its
+    # blocks split into in-plane 2x2 and normal 1x1 parts), None where they do not
+    plane_basis: np.ndarray | None = None
 
     @property
     def interior_dofs(self) -> int:

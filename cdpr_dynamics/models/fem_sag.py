@@ -121,6 +121,13 @@ def _series_planar(planar, axial, transverse, mass, lam) -> np.ndarray:
     lam = np.asarray(lam).ravel()
     dtype = float if np.isrealobj(lam) else complex
     c = mass[:, None] * lam.astype(dtype)[None, :]                       # (ncab, nl)
+    if dtype is float and not lam.any():        # static: G is the sum of the flexibilities
+        beta = 1.0 / transverse                                          # (n, ncab)
+        delta = 1.0 / axial - beta
+        g0, g1, g2, gn = (np.broadcast_to(a.sum(axis=0)[:, None], c.shape)
+                          for a in (delta * ee2[0] + beta, delta * ee2[1],
+                                    delta * ee2[2] + beta, beta))
+        return _planar_end(basis, g0, g1, g2, gn, c, lam.size)
     six_c = 6.0 * c
     axial_flexibility = 1.0 / (axial[:, None] + c)
     ee2 = ee2[..., None].astype(dtype)            # columns of c's type: no mixed broadcasts
@@ -142,6 +149,12 @@ def _series_planar(planar, axial, transverse, mass, lam) -> np.ndarray:
         g0 = (p0 - e) * inv
         g1 = p1 * inv
         g2 = (p2 - e) * inv
+    return _planar_end(basis, g0, g1, g2, gn, c, lam.size)
+
+
+def _planar_end(basis, g0, g1, g2, gn, c, nl) -> np.ndarray:
+    """S = G^-1 + 3 c I (nl, ncab, 3, 3) in the world frame from the condensed chains'
+    in-plane flexibility (g0, g1, g2) and normal one gn (ncab, nl) in their planes ``basis``."""
     inv_det = 1.0 / (g0 * g2 - g1 * g1)
     three_c = 3.0 * c
     parts = np.stack([g2 * inv_det + three_c, -g1 * inv_det, g0 * inv_det + three_c,
@@ -152,7 +165,7 @@ def _series_planar(planar, axial, transverse, mass, lam) -> np.ndarray:
                        u2[:, :, None] * u2[:, None, :], normal[:, :, None] * normal[:, None, :]],
                       axis=1).reshape(-1, 4, 9)                          # (ncab, 4, 9)
     out = parts.transpose(1, 2, 0) @ shapes                              # (ncab, nl, 9)
-    return out.transpose(1, 0, 2).reshape(lam.size, basis.shape[0], 3, 3)
+    return out.transpose(1, 0, 2).reshape(nl, basis.shape[0], 3, 3)
 
 
 def _series_3d(ee, axial, transverse, mass, lam, first=None) -> np.ndarray:
@@ -225,7 +238,7 @@ def sag_chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = 
     Returns (ChainBlocks, element data for :func:`series_end_stiffness`, CatenaryState).
     The shapes are computed in each cable's plane (:func:`_plane_points`) and lifted to 3D.
     """
-    blocks, elements, state = _chains(cables, n, state)
+    blocks, elements, state, _ = _chains(cables, n, state)
     return blocks, _series_elements(*elements), state
 
 
@@ -238,7 +251,9 @@ def _series_elements(ee, axial, transverse, lumped):
 
 def _chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = None):
     """:func:`sag_chains` with its element data as (e e^T, axial, transverse, lumped mass):
-    :func:`_series_elements` gives the components where the end stiffness is asked for."""
+    :func:`_series_elements` gives the components where the end stiffness is asked for; and
+    :func:`planar_chains`' answer for these chains, known: the planes of :func:`_plane_basis`
+    and the in-plane components (h h, h e, e e) of each e e^T, (3, n, ncab)."""
     state = catenary.state_of(cables) if state is None else state
     planes = catenary._planes(cables)
     with np.errstate(all='ignore'):          # invalid cables: replaced just below
@@ -251,8 +266,8 @@ def _chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = Non
         p_v = np.where(valid[:, None], p_v, -planes.span_v[:, None] * fraction)
     d_h, d_v = p_h[:, 1:] - p_h[:, :-1], p_v[:, 1:] - p_v[:, :-1]        # (ncab, n)
     chord_e = np.sqrt(d_h * d_h + d_v * d_v)
-    e = (d_h / chord_e)[..., None] * planes.horizontal[:, None, :] \
-        + (d_v / chord_e)[..., None] * planes.up                          # (ncab, n, 3)
+    e_h, e_v = d_h / chord_e, d_v / chord_e
+    e = e_h[..., None] * planes.horizontal[:, None, :] + e_v[..., None] * planes.up  # (ncab, n, 3)
     shapes = _chain_shapes(n)
     l0 = state.unstrained_length_m / n                                    # (ncab,)
     sigma_mid = l0[:, None] * shapes.midpoints
@@ -275,7 +290,9 @@ def _chains(cables: CableSet, n: int, state: catenary.CatenaryState | None = Non
     lumped = cables.mass_per_length_kg_m * l0 / 6.0                      # (ncab,) kg
     m_diag = lumped[:, None, None, None] * shapes.mass_diag
     m_off = lumped[:, None, None, None] * shapes.mass_off
-    return ChainBlocks(k_diag, k_off, m_diag, m_off), (ee, axial, transverse, lumped), state
+    planar = (_plane_basis(planes), np.stack([e_h * e_h, e_h * e_v, e_v * e_v]).transpose(0, 2, 1))
+    return ChainBlocks(k_diag, k_off, m_diag, m_off), (ee, axial, transverse, lumped), state, \
+        planar
 
 
 class _ChainShapes(NamedTuple):
@@ -313,7 +330,7 @@ def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
     n = int(elements_per_cable)
     if n < 1:
         raise ValueError('fem_sag needs at least one element per cable')
-    blocks, parts, state = _chains(cables, n)
+    blocks, parts, state, planar = _chains(cables, n)
     first = None
     if cables.anchor_end is not None:
         ee, axial, transverse, _ = parts
@@ -330,16 +347,30 @@ def build(cables: CableSet, elements_per_cable: int = 16) -> CableAssembly:
     series = []           # (planar_chains, element data): on the first call, not per pose
 
     def end_stiffness(lam):
-        if not series:
-            elements = _series_elements(*parts)
-            series.append((planar_chains(elements[0]), elements))
-        planar, elements = series[0]
         lam = np.asarray(lam)
         if np.iscomplexobj(lam) and not np.any(lam.imag):
             lam = lam.real                   # undamped: the real recursion is twice as fast
+        if first is None and np.isrealobj(lam) and not lam.any():
+            _, axial, transverse, lumped = parts          # static: the planes are known
+            return _series_planar(planar, axial, transverse.T, lumped, lam).astype(complex)
+        if not series:
+            elements = _series_elements(*parts)
+            series.append((planar_chains(elements[0]), elements))
+        planar_found, elements = series[0]
         if first is not None:
             return _series_3d(*elements, lam, first).astype(complex, copy=False)
-        return _series(planar, *elements, lam).astype(complex, copy=False)
+        return _series(planar_found, *elements, lam).astype(complex, copy=False)
 
     return CableAssembly('fem_sag', n, end_stiffness, -state.force_n, blocks,
-                         valid=bool(state.valid.all()), warnings=warnings)
+                         valid=bool(state.valid.all()), warnings=warnings,
+                         plane_basis=None if first is not None else planar[0])
+
+
+def _plane_basis(planes) -> np.ndarray:
+    """(ncab, 3, 3) rows h, e, h x e: the plane each chain lies in (h horizontal from the
+    anchor towards the attachment, e up: ``planes``, the cables' :func:`catenary._planes`)
+    and its normal."""
+    h = planes.horizontal
+    up = np.broadcast_to(planes.up, h.shape)
+    normal = h[:, [1, 2, 0]] * up[:, [2, 0, 1]] - h[:, [2, 0, 1]] * up[:, [1, 2, 0]]
+    return np.stack([h, up, normal], axis=1)
