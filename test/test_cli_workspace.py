@@ -25,6 +25,7 @@ from cdpr_dynamics.analysis.workspace import COLUMNS, chunk_tasks, compute_chunk
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / 'config' / 'paper_cdpr.yaml'
 RIGID = REPO / 'test' / 'data' / 'rigid_cdpr.yaml'
+SUSPENDED = REPO / 'config' / 'suspended_3cable.yaml'
 BIN = Path(sys.executable).parent      # the dask command line, of this Python's venv
 #: the grid of the engine tests: 3 x 3 x 3 poses, 2 of them infeasible, fem 4, chunks of 3
 GRID = ['--x', '-1', '1', '3', '--y', '-0.6', '0.6', '3', '--z', '0.4', '2.2', '3',
@@ -134,13 +135,15 @@ def slow_serial(tmp_path_factory) -> dict:
 
 POSES = [(0.0, 0.0, 1.25), (0.5, -0.3, 0.8), (-0.9, 0.6, 1.9)]
 NEAR_CENTRE = [(0.0, 0.0, 1.25), (0.3, -0.2, 1.1), (0.2, 0.1, 1.3)]
+HANGING = [(0.0, 0.0, 1.0), (0.05, -0.03, 1.0), (-0.1, 0.05, 0.9)]   # not equilibria but one
 
 
 @pytest.mark.parametrize('config, method, n, quaternion, points', [
     (PAPER, 'fem', 4, (0, 0, 0, 1), POSES), (PAPER, 'fem_sag', 4, (0, 0, 0, 1), POSES),
     (PAPER, 'auto', 4, (0, 0, 0, 1), POSES),
     (RIGID, 'spring', 1, (0.0, 0.0, np.sin(0.1), np.cos(0.1)), NEAR_CENTRE),
-    (RIGID, 'fem', 3, (0.0, np.sin(0.05), 0.0, np.cos(0.05)), NEAR_CENTRE)])
+    (RIGID, 'fem', 3, (0.0, np.sin(0.05), 0.0, np.cos(0.05)), NEAR_CENTRE),
+    (SUSPENDED, 'fem', 4, (0, 0, 0, 1), HANGING)])
 def test_rows_equal_cdpr_analyze(tmp_path, config, method, n, quaternion, points):
     """One chunk along the poses (warm-started as on a worker) against cdpr_analyze run at
     each pose by itself."""
@@ -174,6 +177,14 @@ def test_rows_equal_cdpr_analyze(tmp_path, config, method, n, quaternion, points
             np.testing.assert_allclose(rows['platform_modes_hz'][i], listed, rtol=1e-9)
         if method == 'auto':
             assert rows['auto_method'][i] == doc['model_choice']['method']
+        # where the row's equilibrium lies: an underactuated robot settles away from the pose
+        held = doc['equilibrium'].get('underactuated') or {'distance_m': 0.0, 'angle_rad': 0.0}
+        assert rows['equilibrium_distance_m'][i] == pytest.approx(held['distance_m'], rel=1e-6,
+                                                                  abs=1e-12)
+        assert rows['equilibrium_angle_rad'][i] == pytest.approx(held['angle_rad'], rel=1e-6,
+                                                                 abs=1e-12)
+    if config == SUSPENDED:
+        assert min(rows['equilibrium_distance_m'][1:]) > 1e-3
 
 
 def _config_at(tmp_path, params, pose, method, n) -> Path:

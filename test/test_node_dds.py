@@ -60,6 +60,7 @@ pytestmark = pytest.mark.ros   # nodes, DDS, worker processes, signals
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / 'config' / 'paper_cdpr.yaml'
 RIGID = REPO / 'test' / 'data' / 'rigid_cdpr.yaml'
+SUSPENDED = REPO / 'config' / 'suspended_3cable.yaml'
 TIMEOUT_S = 15.0
 START_S = 1000.0          # simulated time of the first input
 NAN, INF = float('nan'), float('inf')
@@ -231,7 +232,7 @@ class Harness:
         msg = next(m for m in reversed(self.tensions) if m.header.stamp == stamp)
         lengths, tensions = read_tensions(msg)
         np.testing.assert_allclose(tensions, self.mirror.eq.tensions.tension_n, rtol=1e-9)
-        np.testing.assert_allclose(lengths, self.mirror.eq.geometry.length_m, rtol=1e-12)
+        np.testing.assert_allclose(lengths, self.mirror.eq.geometry.cable_length_m, rtol=1e-12)
         return lengths, tensions
 
     def bad_pose(self, position, quaternion=(0.0, 0.0, 0.0, 1.0), frame=None, stamp=None,
@@ -764,6 +765,33 @@ def test_rigid_platform_inputs(ros):
         rigid.wrench([10.0, 0.0, 100.0], [1.0, -2.0, 0.5])
     finally:
         assert rigid.close() == 0
+
+
+def test_an_underactuated_robot_hanging_below_its_pulleys(ros):
+    """Three cables over pulleys hold a 6-DOF platform whose centre of mass hangs below it: a
+    pose that is not an equilibrium is taken, warned with its distance and analysed at the
+    equilibrium with its cable lengths (tensions, lengths, predictions and the service as the
+    library gives them there)."""
+    hang = Harness(SUSPENDED, ros['log_dir'], 'suspended')
+    try:
+        since = len(hang.diagnostics)
+        hang.pose([0.05, -0.03, 1.0])                     # tensions and lengths as the mirror's
+        held = hang.mirror.eq.balance
+        assert held.far and held.distance_m > 1e-3
+        hang.expect_status('model', WARN, 'not an equilibrium', since=since)
+        status = hang.fresh_status('model')
+        assert any(f'{held.distance_m:.4g} m' in text for text in status['values'].values()) \
+            or f'{held.distance_m:.4g} m' in status['message'], status
+        for _ in range(20):
+            hang.wrench([2.0, 0.0, 0.0])                  # each as the mirror predicts it
+        arrays = hang.frf(['amplitude_x_m', 'platform_natural_frequencies_hz'])
+        expected = frf_arrays(hang.settings, build_system(hang.settings, hang.mirror.eq))
+        for name, values in arrays.items():
+            np.testing.assert_allclose(values, expected[name], rtol=1e-9, err_msg=name)
+        # a pendulum's swing: the lowest mode is slow (gravity holds it, not the cables)
+        assert expected['platform_natural_frequencies_hz'][0] < 2.0
+    finally:
+        assert hang.close() == 0
 
 
 @pytest.mark.parametrize('method,parameters,words', [

@@ -33,7 +33,10 @@ the configured damping and :func:`~cdpr_dynamics.dynamics.system.frequency_respo
   the centroid, ((K^-1)_tt)^-1 (rotations free for a rigid platform; N/m);
 * ``auto_method``, ``auto_elements``: what ``model.method = auto`` picks at this pose;
 * ``method``, ``elements_per_cable``: the model the row was computed with;
-* ``compute_s``: the wall time of the row.
+* ``compute_s``: the wall time of the row;
+* ``equilibrium_distance_m``, ``equilibrium_angle_rad``: how far the equilibrium analysed lies
+  from the pose (an underactuated robot settles where its cable lengths hold it; 0 for a
+  robot whose cables hold every pose).
 
 **Status** (never an exception, never a missing row): ``ok``; ``outside`` (no such pose: not
 finite, or an attachment on its anchor), ``rank_deficient``, ``crossing``, ``infeasible`` (no
@@ -80,7 +83,8 @@ COLUMNS = ('x_m', 'y_m', 'z_m', 'qx', 'qy', 'qz', 'qw', 'status', 'reason', 'ten
            'tension_margin_n', 'structure_matrix_condition', 'max_sag_parameter',
            'lowest_platform_hz', 'platform_modes_hz', 'first_cable_mode_hz',
            'peak_receptance_m_per_n', 'min_stiffness_n_per_m', 'auto_method', 'auto_elements',
-           'compute_s', 'method', 'elements_per_cable')
+           'compute_s', 'method', 'elements_per_cable', 'equilibrium_distance_m',
+           'equilibrium_angle_rad')
 LIST_COLUMNS = ('tensions_n', 'platform_modes_hz')
 TEXT_COLUMNS = ('status', 'reason', 'auto_method', 'method')
 INT_COLUMNS = ('auto_elements', 'elements_per_cable')
@@ -345,6 +349,11 @@ def _fill(row, settings, pose, solver, previous, hint, auto_columns):
         chord = equilibrium(settings, position, rotation, solver=solver)
     except AnalysisError as exc:
         raise _Refused(statics_status(str(exc)), str(exc)) from None
+    held = chord.balance
+    row['equilibrium_distance_m'] = 0.0 if held is None else held.distance_m
+    row['equilibrium_angle_rad'] = 0.0 if held is None else held.angle_rad
+    if held is not None and held.moved:         # the row describes the equilibrium
+        row['structure_matrix_condition'] = structure_rank(held.geometry.structure_matrix)[1]
     if is_underactuated(settings.robot):
         tension = chord.tensions.tension_n
         row['tension_margin_n'] = float(min(np.min(tension - settings.tension_min_n),
