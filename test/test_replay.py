@@ -1173,3 +1173,44 @@ def test_runs_write_what_one_input_at_a_time_writes(source, method, tmp_path, mo
     assert (runs.rejected, runs.wrenches_accepted) == (single.rejected, single.wrenches_accepted)
     assert ((tmp_path / 'runs' / 'out.mcap').read_bytes()
             == (tmp_path / 'single' / 'out.mcap').read_bytes())
+
+
+def test_an_underactuated_robot_replays_as_the_live_predictor_runs(tmp_path):
+    """suspended_3cable (three cables over pulleys, a 6-DOF platform hanging below them): poses
+    that are not equilibria and a push, replayed, give what LivePredictor gives on the same
+    inputs (the node's core), at the equilibria of the poses' cable lengths."""
+    from builtin_interfaces.msg import Time
+
+    from cdpr_dynamics.analysis.config import load_settings
+    from cdpr_dynamics.analysis.live import LivePredictor
+
+    config = REPO / 'config' / 'suspended_3cable.yaml'
+    settings = load_settings(config)
+    predictor = LivePredictor(settings)
+    t0 = scenarios.T0_NS
+    source = tmp_path / 'hanging.mcap'
+    expected = {}
+    with RecordingWriter(source) as writer:
+        writer.add_topic('/pose', POSE, scenarios.QOS)
+        writer.add_topic('/wrench', WRENCH, scenarios.QOS)
+        for k in range(300):
+            ns = t0 + k * 1_000_000
+            stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
+            if k % 100 == 0:
+                where = np.add(settings.initial_position_m, (0.02 * k / 100, -0.01, 0.0))
+                writer.write('/pose', pose_message(where, (0.0, 0.0, 0.0, 1.0), 'world', stamp),
+                             ns)
+                predictor.update_pose(where)
+                assert predictor.eq.balance is not None
+            force = (3.0 if k < 150 else 0.0, 0.0, 0.0)
+            writer.write('/wrench', wrench_message(force, (0.0, 0.0, 0.0), 'world', stamp), ns)
+            expected[ns] = predictor.advance(ns, force, (0.0, 0.0, 0.0))
+    assert predictor.eq.balance.far          # the last pose settled away from where it was sent
+    out = replay_cli(source, '--output', tmp_path / 'out.mcap', '--config', config)
+    assert out.returncode == 0, out.stderr
+    got = read_predictions(tmp_path / 'out.mcap')
+    assert set(got.displacement) == set(expected)
+    peak = max(np.abs(u).max() for u in expected.values())
+    assert peak > 1e-4
+    for ns, u in expected.items():
+        np.testing.assert_allclose(got.displacement[ns], u[:3], rtol=0, atol=1e-9 * peak)
