@@ -49,7 +49,7 @@ import numpy as np
 
 from cdpr_dynamics.analysis.config import (NODE_PARAMETER_BY_NAME, Settings, node_options,
                                            read_params_file, settings_from_params)
-from cdpr_dynamics.analysis.live import Checkpoint, LivePredictor, same_model
+from cdpr_dynamics.analysis.live import Checkpoint, LivePredictor, PoseUpdate, same_model
 from cdpr_dynamics.recording.base import RecordingError, UndecodableMessage
 from cdpr_dynamics.recording.reader import McapFile, read_messages, recording_info, Salvage
 from cdpr_dynamics.recording import chunks
@@ -698,12 +698,15 @@ class _Outputs:
             what, exc, topic, ns_to_stamp(stamp_ns))), log_time, log_time))
 
     def pose(self, stamp_ns: int, frame: str, values: tuple, log_time: int,
-             records: list) -> None:
-        """A pose through the handler: its cable_tensions or its diagnostic."""
+             records: list, still: bool = False) -> None:
+        """A pose through the handler: its cable_tensions or its diagnostic. ``still``: the
+        pose is known to leave the model as it is (:meth:`InputHandler.pose_still`), the
+        model's own test is not made again."""
         summary = self.summary
         summary.poses += 1
         try:
-            update = self.handler.pose_values(stamp_ns, frame, values)
+            update = self.handler.pose_values(stamp_ns, frame, values,
+                                              move=_kept if still else None)
         except InvalidMessage as exc:
             self.rejected('pose', exc, stamp_ns, log_time, records)
             return
@@ -741,6 +744,11 @@ class _Outputs:
         displacement, position, quaternion = self.predictor.predictions(q, self.point)
         return (encode_stamped_run(stamps, self.frame_id, displacement),
                 encode_stamped_run(stamps, self.frame_id, np.hstack([position, quaternion])))
+
+
+def _kept(position_m, quaternion=None) -> PoseUpdate:
+    """What :meth:`LivePredictor.update_pose` returns for a pose that did not move."""
+    return PoseUpdate(False)
 
 
 def restamped(data: bytes, stamp_ns: int) -> bytes:
@@ -801,30 +809,48 @@ def _replay_run(batch: list, position: int, limit: int, wrench_channel: int, out
             out.wrench(int(stamps[start]), frame, tuple(values[start].tolist()),
                        wrenches[start][1][0], records)
             start += 1
-    accepted = 0
-    if batched:
-        batched = np.concatenate(batched)
-        displacement, predicted = out.predictions(stamps[batched], np.concatenate(rows))
-        for k, d, p in zip(batched.tolist(), displacement, predicted):
-            log_time = wrenches[k][1][0]
-            outputs[k] = [(out.displacement, d, log_time, log_time),
-                          (out.predicted_pose, p, log_time, log_time)]
-        accepted = len(batched)
-        summary.wrenches += accepted
-        summary.wrenches_accepted += accepted
-        summary.before_first_pose += accepted if not first_pose else 0
-    placed = {}
+    extra = {wrenches[k][0]: records for k, records in enumerate(outputs)
+             if records is not None}      # place in the run -> the records after its input
     for place, item, fields in poses:    # they leave the model as it is: after the wrenches
-        placed[place] = records = []
-        out.pose(*fields, item[0], records)
-    records = []
-    wrench_outputs = iter(outputs)
-    for place in range(stop - position):
-        log_time, publish_time, channel_id, data = batch[position + place]
-        records.append((channel_id, data, log_time, publish_time))
-        records.extend(placed[place] if place in placed else next(wrench_outputs))
-    out.write(records)
+        extra[place] = records = []
+        out.pose(*fields, item[0], records, still=True)
+    items = batch[position:stop]
+    sizes = np.ones(len(items), dtype=np.int64)
+    for place, records in extra.items():
+        sizes[place] += len(records)
+    batched = np.concatenate(batched or [np.zeros(0, dtype=np.int64)])
+    places = np.array([wrenches[k][0] for k in batched.tolist()], dtype=np.int64)
+    sizes[places] += 2
+    starts = np.cumsum(sizes) - sizes
+    total = int(sizes.sum())
+    channels, logs, publish = (np.empty(total, dtype=np.int64) for _ in range(3))
+    datas = np.empty(total, dtype=object)
+    logs[starts], publish[starts], channels[starts], inputs = zip(*items)    # the inputs
+    datas[starts] = _objects(inputs)
+    if len(places):
+        displacement, predicted = out.predictions(stamps[batched], np.concatenate(rows))
+        at = starts[places]
+        for shift, channel, data in ((1, out.displacement, displacement),
+                                     (2, out.predicted_pose, predicted)):
+            channels[at + shift], logs[at + shift], publish[at + shift] = channel, logs[at], \
+                logs[at]
+            datas[at + shift] = _objects(data)
+        summary.wrenches += len(places)
+        summary.wrenches_accepted += len(places)
+        summary.before_first_pose += len(places) if not first_pose else 0
+    for place, records in extra.items():
+        for shift, (channel, data, log_time, publish_time) in enumerate(records, 1):
+            at = starts[place] + shift
+            channels[at], datas[at], logs[at], publish[at] = channel, data, log_time, publish_time
+    out.writer.write_many(channels, datas, logs, publish)
     return stop - position
+
+
+def _objects(items: list) -> np.ndarray:
+    """An object array of ``items`` (bytes: numpy would make them a bytes array)."""
+    array = np.empty(len(items), dtype=object)
+    array[:] = items
+    return array
 
 
 def _keep(kept: dict, consumed: int, summary: ReplaySummary, handler: InputHandler) -> None:
