@@ -36,6 +36,7 @@ import io
 import itertools
 import json
 import math
+import operator
 import struct
 import tempfile
 import threading
@@ -288,8 +289,9 @@ def by_stamp(batches, folder: Path, batch_size: int = 4096):
             stream.close()
 
 
-def _stamp_order(item) -> tuple:
-    return item[0], item[1]
+#: the order of ``--order stamp``: header stamp, then log time (sorts are stable: then input
+#: order)
+_stamp_order = operator.itemgetter(0, 1)
 
 
 # ----------------------------------------------------------------------------- offline
