@@ -720,7 +720,7 @@ class _Outputs:
             data = serialize(tensions_message(eq.geometry.cable_length_m, eq.tensions.tension_n,
                                               ns_to_stamp(stamp_ns), self.frame_id))
             self._tensions = eq, data
-        records.append((self.tensions, restamped(data, stamp_ns), log_time, log_time))
+        records.append((self.tensions, _restamped(data, stamp_ns), log_time, log_time))
 
     def wrench(self, stamp_ns: int, frame: str, values: tuple, log_time: int,
                records: list) -> None:
@@ -753,7 +753,7 @@ def _kept(position_m, quaternion=None) -> PoseUpdate:
     return PoseUpdate(False)
 
 
-def restamped(data: bytes, stamp_ns: int) -> bytes:
+def _restamped(data: bytes, stamp_ns: int) -> bytes:
     """The CDR bytes of a message that starts with a Header, its stamp set to ``stamp_ns``
     (as :func:`~msg_adapters.validation.ns_to_stamp` splits it)."""
     stamp = ns_to_stamp(stamp_ns)
