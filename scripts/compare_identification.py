@@ -74,6 +74,8 @@ def cases(settings: dict):
     yield 'rigid, 100 s record, 0.1 mm', rigid, at, U6, 100.0, 1e-4, 0.02, False
     yield 'sagging, 6 modes 2.0-12 Hz, 0.1 mm', sag, \
         list(sag.initial_position_m + [0.1, -0.1, 0.0]), U6, 20.0, 1e-4, 0.02, False
+    yield 'point mass, 3 modes within 1.5 %, 0.2 % damping, 0.1 mm', point, near, U6[:3], \
+        40.0, 1e-4, 0.002, False
     yield 'point mass, 3 modes within 1.5 %, 0.5 % damping, 0.1 mm', point, near, U6[:3], \
         40.0, 1e-4, 0.005, False
     yield 'point mass, 3 modes within 1.5 %, 2 % damping, 0.1 mm', point, near, U6[:3], \

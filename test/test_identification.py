@@ -201,8 +201,8 @@ def test_refinement_from_two_equal_poles_does_not_fail():
     pole = complex(-0.02 * 2 * np.pi * 3.0, 2 * np.pi * 3.0)
     y = np.real(np.outer(np.exp(pole * t), [1.0, 0.5 - 0.2j]))
     y += 1e-4 * np.random.default_rng(0).standard_normal(y.shape)
-    poles, _, _, snr = refine(t, y, [pole, pole])
-    best = poles[int(np.argmax(snr))]
+    fit = refine(t, y, [pole, pole])
+    best = fit.poles[int(np.argmax(fit.snr))]
     assert abs(best.imag / pole.imag - 1) < 1e-3 and abs(best.real / pole.real - 1) < 0.05
 
 

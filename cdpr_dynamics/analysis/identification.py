@@ -12,12 +12,14 @@ acceleration). :func:`identify_record`:
    ``max_amplitude_m`` is skipped too (beyond the linear model); each excitation within a
    stretch starts a decay of its own (:func:`decay_spans`), used if at least
    ``min_duration_s`` long;
-3. identifies each decay's modes (its first ``max_window_s``) by the eigensystem realisation
-   algorithm (ERA: the block Hankel matrix of the free decay, its SVD, poles from the shifted
-   Hankel matrix) over a range of model orders, keeps the poles that are stable over the
-   orders, and refines them by a variable-projection Levenberg-Marquardt fit of the decay
-   sum_r Re(a_r e^{s_r t}) to the samples, whose Jacobian gives the standard uncertainty of
-   each frequency and damping ratio.
+3. identifies each decay's modes (its first ``max_window_s``): each channel divided by its
+   noise level (:func:`noise_level`), covariance-driven stochastic subspace identification
+   over a range of model orders (:func:`ssi_poles`), the poles that are stable over the
+   orders, tracked from order to order by frequency, damping and shape
+   (:func:`stable_poles`), refined by a variable-projection Levenberg-Marquardt fit of the
+   decay sum_r Re(a_r e^{s_r t}) to the samples, whose Jacobian gives the standard
+   uncertainty of each frequency and damping ratio; poles the subspace missed are looked for
+   in the fit's residual (:func:`add_close_poles`).
 
 The mode's direction is its residue vector over the platform DOFs (x y z, rotation vector),
 phase-aligned and normalised; an IMU's angular velocity and acceleration residues are divided
@@ -29,7 +31,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.optimize
 import scipy.signal
+import scipy.stats
 from scipy.spatial.transform import Rotation
 
 #: Record kinds: a pose (x y z qx qy qz qw per sample) or an IMU (wx wy wz ax ay az).
@@ -189,92 +193,135 @@ def decay_spans(fast: np.ndarray, dt: float, f_min_hz: float) -> list[tuple[int,
     return spans
 
 
-# --------------------------------------------------------------------------- ERA
+# --------------------------------------------------------------------------- subspace
 
-def era_poles(y: np.ndarray, dt: float, orders, block_rows: int):
+def noise_level(y: np.ndarray, dt: float, f_above_hz: float) -> np.ndarray:
+    """(c,): each channel's white-noise standard deviation, from its periodogram above
+    ``f_above_hz`` (no mode there): the median bin over ln 2 (the median of a chi-square
+    of two degrees of freedom over two)."""
+    spectrum = np.abs(np.fft.rfft(y, axis=0)) ** 2 / y.shape[0]
+    band = np.fft.rfftfreq(y.shape[0], dt) >= f_above_hz
+    return np.sqrt(np.median(spectrum[band], axis=0) / math.log(2.0))
+
+
+def ssi_poles(y: np.ndarray, dt: float, orders, block_rows: int):
     """Continuous-time poles and mode shapes (per order) of the free decay ``y`` (n, c) by
-    ERA: H0 = U S V^T (block Hankel, ``block_rows`` blocks), A = S^-1/2 U^T H1 V S^-1/2,
-    from the small products H0 H0^T = U S^2 U^T and H1 H0^T (V = H0^T U S^-1)."""
+    covariance-driven stochastic subspace identification: T = Y_f Y_p^T / j (the future block
+    rows of the block Hankel matrix times the past ones; white noise, independent between
+    them, leaves no floor in T) = U S V^T, observability O = U S^1/2, A from
+    O[without the last block] A = O[without the first], shapes C psi (C: O's first block)."""
     n, c = y.shape
-    cols = n - block_rows
-    idx = np.arange(block_rows)[:, None] + np.arange(cols + 1)[None, :]
-    big = y[idx].transpose(0, 2, 1).reshape(block_rows * c, cols + 1)    # (i c, j + 1)
-    h0, h1 = big[:, :-1], big[:, 1:]
-    s2, u = np.linalg.eigh(h0 @ h0.T)
-    s2, u = s2[::-1], u[:, ::-1]
-    s = np.sqrt(np.clip(s2, 0.0, None))
-    cross = h1 @ h0.T
+    cols = n - 2 * block_rows + 1
+    idx = np.arange(2 * block_rows)[:, None] + np.arange(cols)[None, :]
+    big = y[idx].transpose(0, 2, 1).reshape(2 * block_rows * c, cols)     # (2 i c, j)
+    past, future = big[:block_rows * c], big[block_rows * c:]
+    u, s, _ = np.linalg.svd(future @ past.T / cols)
     out = []
     for order in orders:
         if order > s.size or s[order - 1] <= 1e-10 * s[0]:
             continue
-        root = 1.0 / np.sqrt(s[:order])
-        a = (root[:, None] * (u[:, :order].T @ cross @ u[:, :order]) / s[:order]) * root[None, :]
+        o = u[:, :order] * np.sqrt(s[:order])
+        a = np.linalg.lstsq(o[:-c], o[c:], rcond=None)[0]
         mu, psi = np.linalg.eig(a)
         with np.errstate(divide='ignore', invalid='ignore'):
             poles = np.log(mu.astype(complex)) / dt
-        shapes = (u[:c, :order] * np.sqrt(s[:order])) @ psi
-        out.append((poles, shapes))
+        out.append((poles, o[:c] @ psi))
     return out
+
+
+def _physical(poles, shapes, f_min, f_max, max_zeta):
+    """The poles (upper half plane) in the band and damping range, with their shapes."""
+    ok = np.isfinite(poles) & (poles.imag > 0)
+    f = np.where(ok, poles.imag, 0.0) / (2 * np.pi)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        zeta = -poles.real / np.abs(poles)
+    keep = ok & (f >= f_min) & (f <= f_max) & (zeta > 0) & (zeta < max_zeta)
+    return poles[keep], None if shapes is None else shapes[:, keep]
+
+
+def _mac(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Modal assurance criterion |a_i^H b_j|^2 / (|a_i|^2 |b_j|^2) of the columns (p, q)."""
+    num = np.abs(a.conj().T @ b) ** 2
+    den = np.outer(np.sum(np.abs(a) ** 2, axis=0), np.sum(np.abs(b) ** 2, axis=0))
+    return num / np.maximum(den, 1e-300)
 
 
 def stable_poles(per_order, f_min: float, f_max: float, max_zeta: float,
-                 tolerance: float = 0.01) -> list[complex]:
-    """Poles (upper half plane) found at matching frequency in at least half of the orders:
-    the median pole of each such cluster."""
-    found = []
-    for poles, _ in per_order:
-        ok = np.isfinite(poles) & (poles.imag > 0)
-        p = poles[ok]
-        f = p.imag / (2 * np.pi)
-        zeta = -p.real / np.abs(p)
-        keep = (f >= f_min) & (f <= f_max) & (zeta > 0) & (zeta < max_zeta)
-        found.extend(p[keep].tolist())
-    if not found:
-        return []
-    found = np.array(sorted(found, key=lambda z: z.imag))
-    clusters, current = [], [found[0]]
-    for pole in found[1:]:
-        if pole.imag - current[-1].imag <= tolerance * current[-1].imag:
-            current.append(pole)
-        else:
-            clusters.append(current)
-            current = [pole]
-    clusters.append(current)
+                 tolerance: float = 0.01, min_mac: float = 0.9) -> list[complex]:
+    """Poles (upper half plane) stable over the model orders: each order's poles continue the
+    tracks of the lower orders, one pole per track and order, paired by an assignment on the
+    pole's relative distance |s - s'| / |s'| (below ``tolerance``) and, where shapes are given,
+    the shapes' MAC (above ``min_mac``); a track with a pole in at least half of the orders is
+    a mode, its pole the median of the track's. Close modes stay apart as long as each order
+    holds them apart."""
+    tracks = []          # [list of poles, last shape]
+    big = 1e6
+    for poles, shapes in per_order:
+        poles, shapes = _physical(np.asarray(poles), shapes, f_min, f_max, max_zeta)
+        if poles.size == 0:
+            continue
+        matched = np.zeros(poles.size, bool)
+        if tracks:
+            last = np.array([track[0][-1] for track in tracks])
+            distance = np.abs(poles[None, :] - last[:, None]) / np.abs(last)[:, None]
+            cost = distance.copy()
+            gate = distance < tolerance
+            if shapes is not None:
+                mac = _mac(np.stack([track[1] for track in tracks], axis=1), shapes)
+                gate &= mac > min_mac
+                cost = cost + tolerance * (1.0 - mac)
+            rows, cols = scipy.optimize.linear_sum_assignment(np.where(gate, cost, big))
+            for i, j in zip(rows, cols):
+                if gate[i, j]:
+                    tracks[i][0].append(poles[j])
+                    tracks[i][1] = None if shapes is None else shapes[:, j]
+                    matched[j] = True
+        for j in np.flatnonzero(~matched):
+            tracks.append([[poles[j]], None if shapes is None else shapes[:, j]])
     need = max(2, len(per_order) // 2)
-    out = []
-    for cluster in clusters:
-        if len(cluster) >= need:
-            cluster = np.array(cluster)
-            out.append(complex(np.median(cluster.real), np.median(cluster.imag)))
-    return out
+    out = [complex(np.median(np.real(track)), np.median(np.imag(track)))
+           for track, _ in tracks if len(track) >= need]
+    return sorted(out, key=lambda pole: pole.imag)
 
 
 # --------------------------------------------------------------------------- refinement
 
 def _basis(t: np.ndarray, poles: np.ndarray) -> np.ndarray:
     """(n, 2m) real basis e^{sigma t} cos(w t), e^{sigma t} sin(w t) per pole."""
-    e = np.exp(np.outer(t, poles.real))
-    wt = np.outer(t, poles.imag)
-    return np.concatenate([e * np.cos(wt), e * np.sin(wt)], axis=1)
+    e = np.exp(np.outer(t, poles))
+    return np.concatenate([e.real, e.imag], axis=1)
 
 
-def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 20):
-    """Least-squares poles of y(t) = sum_r Re(a_r e^{s_r t}) + offset (variable projection:
-    the amplitudes a_r, complex per channel, solved linearly for each trial pole set), by
-    at most ``steps`` Levenberg-Marquardt steps from the ERA poles.
+@dataclass(frozen=True)
+class Fit:
+    """A refined decay model: poles (m,), covariance of (sigma_1..m, omega_1..m), residues
+    (m, c) complex, per pole the ratio of its signal's RMS to the residual's (times
+    sqrt(samples)), and the residual (n, c) in units of the weights."""
 
-    Returns (poles, covariance of (sigma_1..m, omega_1..m), residues (m, c) complex,
-    per pole the ratio of its signal's RMS to the residual's)."""
+    poles: np.ndarray
+    cov: np.ndarray
+    residues: np.ndarray
+    snr: np.ndarray
+    residual: np.ndarray
+
+
+def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], weights=None,
+           steps: int = 20) -> Fit:
+    """Least-squares poles of y(t) = sum_r Re(a_r e^{s_r t}) + offset, each channel divided by
+    its ``weights`` (c,) (default: its standard deviation; its noise level makes it the
+    maximum-likelihood fit), by variable projection (the amplitudes a_r, complex per channel,
+    solved linearly for each trial pole set) and at most ``steps`` Levenberg-Marquardt steps
+    from ``poles``."""
     t = t - t[0]
     n, c = y.shape
     m = len(poles)
-    scale = np.maximum(np.std(y, axis=0), 1e-300)
+    scale = np.maximum(np.std(y, axis=0) if weights is None else np.asarray(weights, float),
+                       1e-300)
     ys = y / scale
 
-    def solve(x):
-        p = x[:m] + 1j * x[m:]
-        a = np.concatenate([_basis(t, p), np.ones((n, 1))], axis=1)
+    def solve(x, a=None):
+        if a is None:
+            a = np.concatenate([_basis(t, x[:m] + 1j * x[m:]), np.ones((n, 1))], axis=1)
         norm = np.linalg.norm(a, axis=0)
         an = a / norm                        # normal equations of unit columns: (2m+1)^2
         try:
@@ -283,18 +330,21 @@ def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 20):
             coef = np.linalg.lstsq(an, ys, rcond=None)[0] / norm[:, None]
         return (a @ coef - ys).ravel(), a, coef
 
-    def jacobian(x, r):
+    def jacobian(x, r, a):
+        """Forward differences; a step of pole k changes the basis' columns k and m + k."""
         step = 1e-7 * np.abs(x[m:]).repeat(2).reshape(2, m).ravel()
         columns = []
         for k in range(2 * m):
             xk = x.copy()
             xk[k] += step[k]
-            columns.append((solve(xk)[0] - r) / step[k])
+            ak = a.copy()
+            ak[:, [k % m, m + k % m]] = _basis(t, xk[[k % m]] + 1j * xk[[m + k % m]])
+            columns.append((solve(xk, ak)[0] - r) / step[k])
         return np.stack(columns, axis=1)
 
     x = np.concatenate([np.real(poles), np.imag(poles)])
     r, a, coef = solve(x)
-    jac = jacobian(x, r)
+    jac = jacobian(x, r, a)
     mu = 1e-3
     with np.errstate(over='ignore', invalid='ignore'):   # a growing trial: refused
         for _ in range(steps):          # Levenberg-Marquardt
@@ -309,7 +359,7 @@ def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 20):
             if r_new @ r_new < r @ r:
                 done = r @ r - r_new @ r_new < 1e-10 * (r @ r)
                 x, r, a, coef = x + dx, r_new, a_new, coef_new
-                jac = jacobian(x, r)
+                jac = jacobian(x, r, a)
                 mu = max(mu / 3.0, 1e-9)
                 if done:
                     break
@@ -323,7 +373,7 @@ def refine(t: np.ndarray, y: np.ndarray, poles: list[complex], steps: int = 20):
     snr = signal * math.sqrt(n) / max(math.sqrt(s2), 1e-300)
     coef = coef * scale
     residues = coef[:m] - 1j * coef[m:2 * m]        # Re(a e^{st}) = Re(a) cos - Im(a) sin
-    return x[:m] + 1j * x[m:], cov, residues, snr
+    return Fit(x[:m] + 1j * x[m:], cov, residues, snr, r.reshape(n, c))
 
 
 def _frequency_damping(pole: complex, var_sigma: float, var_omega: float, covar: float):
@@ -352,6 +402,81 @@ def direction(residue: np.ndarray, pole: complex, kind: str) -> np.ndarray:
     return aligned / norm if norm > 0 else aligned
 
 
+def _modes(fit: Fit, used: np.ndarray, kind: str, options: Options,
+           f_max_hz: float) -> list[tuple[int, Mode]]:
+    """(index of the pole, mode) of each pole of ``fit`` that stands out of the noise
+    (``min_snr``) in the band with a damping ratio known to ``max_damping_rel_std``."""
+    m = fit.poles.size
+    out = []
+    for r, pole in enumerate(fit.poles):
+        if not (pole.imag > 0 and pole.real < 0 and fit.snr[r] >= options.min_snr):
+            continue
+        f, sf, z, sz = _frequency_damping(pole, fit.cov[r, r], fit.cov[m + r, m + r],
+                                          fit.cov[r, m + r])
+        if not (options.f_min_hz <= f <= f_max_hz and z < options.max_damping_ratio
+                and sz <= options.max_damping_rel_std * z):
+            continue
+        full = np.zeros(6, dtype=complex)
+        full[used] = fit.residues[r]
+        out.append((r, Mode(f, sf, z, sz, direction(full, pole, kind))))
+    return out
+
+
+def _distinct(fit: Fit, kept: list[int], weights: np.ndarray, tolerance: float = 0.02,
+              max_mac: float = 0.9) -> bool:
+    """Whether the kept poles within ``tolerance`` of each other move in different directions
+    (MAC of their residues, channels in units of ``weights``, below ``max_mac``): one mode
+    fitted by two poles would not."""
+    poles = fit.poles[kept]
+    shapes = (fit.residues[kept] / weights).T
+    near = np.abs(poles[:, None] - poles[None, :]) < tolerance * np.abs(poles)[:, None]
+    np.fill_diagonal(near, False)
+    return not np.any(near & (_mac(shapes, shapes) > max_mac))
+
+
+def _residual_peak(fit: Fit, dt: float, f_min: float, f_max: float) -> float:
+    """The frequency (Hz) of the highest peak of the residual's spectrum in the band."""
+    spectrum = np.sum(np.abs(np.fft.rfft(fit.residual, axis=0)) ** 2, axis=1)
+    freq = np.fft.rfftfreq(fit.residual.shape[0], dt)
+    band = (freq >= f_min) & (freq <= f_max)
+    return float(freq[band][np.argmax(spectrum[band])]) if band.any() else math.nan
+
+
+def add_close_poles(t, y, weights, fit: Fit, valid, options: Options, f_max_hz: float,
+                    kind: str, used: np.ndarray, tries: int = 3):
+    """Poles the subspace step missed, found in the refined model's residual: a pole at the
+    residual spectrum's highest peak (the damping of the nearest pole) joins the model if
+    the refit leaves significantly less residual (F test at 1e-6), reports more modes, and
+    no two of them within 2 % move alike (:func:`_distinct`). Modes a few per cent apart
+    with damping ratios of a per cent beat over the decay; one decay's subspace holds the
+    third of three such modes below its noise, a fit of all the samples does not.
+
+    Returns (fit, [(pole index, mode)])."""
+    n, c = fit.residual.shape
+    for _ in range(tries):
+        if len(valid) >= options.max_modes:
+            break
+        f_peak = _residual_peak(fit, t[1] - t[0], options.f_min_hz, f_max_hz)
+        if not math.isfinite(f_peak):
+            break
+        near = fit.poles[int(np.argmin(np.abs(fit.poles.imag / (2 * np.pi) - f_peak)))]
+        zeta = min(max(-near.real / abs(near), 1e-3), 0.1)
+        omega = 2 * np.pi * f_peak
+        trial = refine(t, y, list(fit.poles) + [complex(-zeta * omega, omega)], weights)
+        rss, rss_trial = float(np.sum(fit.residual ** 2)), float(np.sum(trial.residual ** 2))
+        m = trial.poles.size
+        dof = max(n * c - 2 * m - (2 * m + 1) * c, 1)
+        added = 2 + 2 * c
+        significant = ((rss - rss_trial) / added) / (rss_trial / dof) > \
+            scipy.stats.f.isf(1e-6, added, dof)
+        found = _modes(trial, used, kind, options, f_max_hz)
+        if not (significant and len(found) > len(valid)
+                and _distinct(trial, [r for r, _ in found], weights[used])):
+            break
+        fit, valid = trial, found
+    return fit, valid
+
+
 def identify_decay(t: np.ndarray, y: np.ndarray, kind: str, options: Options,
                    f_max_hz: float) -> list[Mode]:
     """The modes of one free decay ``y`` (n, 6) sampled uniformly at ``t``."""
@@ -361,34 +486,26 @@ def identify_decay(t: np.ndarray, y: np.ndarray, kind: str, options: Options,
     used = scale > 1e-12 * max(scale.max(), 1e-300)
     if not used.any():
         return []
-    ys = y[:, used] / scale[used]
-    c = ys.shape[1]
+    weights = np.zeros(6)
+    weights[used] = np.maximum(noise_level(y[:, used], dt, max(f_max_hz, 0.4 / dt)),
+                               1e-3 * scale[used])
+    ys = y[:, used] / weights[used]
     top = min(2 * options.max_modes + 10, 60)
-    period_rows = int(math.ceil(0.125 / (options.f_min_hz * dt)))   # 1/8 of the longest period
-    block_rows = max(int(math.ceil(1.2 * top / c)) + 2, period_rows)
-    block_rows = min(block_rows, ys.shape[0] // 3)
+    c = ys.shape[1]
+    # lags over 0.3 of the longest period, at most 360 Hankel rows, enough for the top order
+    block_rows = max(min(int(math.ceil(0.3 / (options.f_min_hz * dt))), 360 // c),
+                     int(math.ceil(top / c)) + 2)
+    block_rows = min(block_rows, ys.shape[0] // 4)
     orders = list(range(max(4, top // 3) + (max(4, top // 3) % 2), top + 1, 2))
-    per_order = era_poles(ys, dt, orders, block_rows)
+    per_order = ssi_poles(ys, dt, orders, block_rows)
     poles = stable_poles(per_order, options.f_min_hz, f_max_hz, options.max_damping_ratio)
     if not poles:
         return []
-    poles = poles[:options.max_modes]
-    refined, cov, residues, snr = refine(t, y[:, used], poles)
-    m = len(poles)
-    modes = []
-    for r in range(m):
-        pole = refined[r]
-        if not (pole.imag > 0 and pole.real < 0 and snr[r] >= options.min_snr):
-            continue
-        f, sf, z, sz = _frequency_damping(pole, cov[r, r], cov[m + r, m + r], cov[r, m + r])
-        if not (options.f_min_hz <= f <= f_max_hz and z < options.max_damping_ratio
-                and sz <= options.max_damping_rel_std * z):
-            continue
-        full = np.zeros(6, dtype=complex)
-        full[used] = residues[r]
-        modes.append(Mode(f, sf, z, sz, direction(full, pole, kind)))
-    modes.sort(key=lambda mode: mode.frequency_hz)
-    return modes
+    fit = refine(t, y[:, used], poles[:options.max_modes], weights[used])
+    valid = _modes(fit, used, kind, options, f_max_hz)
+    fit, valid = add_close_poles(t, y[:, used], weights[used], fit, valid, options, f_max_hz,
+                                 kind, used)
+    return sorted((mode for _, mode in valid), key=lambda mode: mode.frequency_hz)
 
 
 # --------------------------------------------------------------------------- a record
