@@ -19,7 +19,7 @@ acceleration). :func:`identify_record`:
    (:func:`stable_poles`), refined by a variable-projection Levenberg-Marquardt fit of the
    decay sum_r Re(a_r e^{s_r t}) to the samples, whose Jacobian gives the standard
    uncertainty of each frequency and damping ratio; poles the subspace missed are looked for
-   in the fit's residual (:func:`add_close_poles`).
+   in the fit's residual (:func:`add_missed_poles`).
 
 The mode's direction is its residue vector over the platform DOFs (x y z, rotation vector),
 phase-aligned and normalised; an IMU's angular velocity and acceleration residues are divided
@@ -442,14 +442,14 @@ def _residual_peak(fit: Fit, dt: float, f_min: float, f_max: float) -> float:
     return float(freq[band][np.argmax(spectrum[band])]) if band.any() else math.nan
 
 
-def add_close_poles(t, y, weights, fit: Fit, valid, options: Options, f_max_hz: float,
-                    kind: str, used: np.ndarray, tries: int = 3):
-    """Poles the subspace step missed, found in the refined model's residual: a pole at the
-    residual spectrum's highest peak (the damping of the nearest pole) joins the model if
-    the refit leaves significantly less residual (F test at 1e-6), reports more modes, and
-    no two of them within 2 % move alike (:func:`_distinct`). Modes a few per cent apart
-    with damping ratios of a per cent beat over the decay; one decay's subspace holds the
-    third of three such modes below its noise, a fit of all the samples does not.
+def add_missed_poles(t, y, weights, fit: Fit, valid, options: Options, f_max_hz: float,
+                     kind: str, used: np.ndarray, tries: int = 3):
+    """Poles the subspace step missed (a mode too weak for its noise), looked for in the
+    refined model's residual: a pole at the residual spectrum's highest peak (with the
+    damping ratio of the nearest pole) joins the model if the refit leaves significantly less
+    residual (F test at 1e-6), reports more modes, and no two of them within 2 % move alike
+    (:func:`_distinct`); at most ``tries`` poles. ``y`` (n, c) and ``weights`` (c,) are the
+    ``used`` channels.
 
     Returns (fit, [(pole index, mode)])."""
     n, c = fit.residual.shape
@@ -471,7 +471,7 @@ def add_close_poles(t, y, weights, fit: Fit, valid, options: Options, f_max_hz: 
             scipy.stats.f.isf(1e-6, added, dof)
         found = _modes(trial, used, kind, options, f_max_hz)
         if not (significant and len(found) > len(valid)
-                and _distinct(trial, [r for r, _ in found], weights[used])):
+                and _distinct(trial, [r for r, _ in found], weights)):
             break
         fit, valid = trial, found
     return fit, valid
@@ -503,8 +503,8 @@ def identify_decay(t: np.ndarray, y: np.ndarray, kind: str, options: Options,
         return []
     fit = refine(t, y[:, used], poles[:options.max_modes], weights[used])
     valid = _modes(fit, used, kind, options, f_max_hz)
-    fit, valid = add_close_poles(t, y[:, used], weights[used], fit, valid, options, f_max_hz,
-                                 kind, used)
+    fit, valid = add_missed_poles(t, y[:, used], weights[used], fit, valid, options, f_max_hz,
+                                  kind, used)
     return sorted((mode for _, mode in valid), key=lambda mode: mode.frequency_hz)
 
 
