@@ -23,10 +23,11 @@ resampling, rest detection, decay spans) and only the identification of each dec
   as ``own`` picks its subspace poles (sdypy-EMA picks them by hand or near given
   frequencies).
 
-Per case and method: the true modes found (within 2 %, an assignment), those of them within
+Per case and method: the true modes found (within 2 %, an assignment: a mode reported twice
+is paired with a neighbouring true mode where one lies within 2 %), those of them within
 0.5 % in frequency and 20 % in damping, the largest frequency and damping errors of those
-found, the modes reported that are no true mode (spurious: a mode reported twice counts once
-as found, once as spurious) and the identification time (median over the seeds).
+found, the modes reported that are no true mode (spurious) and the identification time
+(median over the seeds).
 """
 from __future__ import annotations
 
