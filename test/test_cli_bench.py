@@ -37,6 +37,7 @@ def test_bench_quick_reports_every_stage(tmp_path):
     heavy = result['heavy_sag']        # quick mode: n = 16 only
     assert [row['elements_per_cable'] for row in heavy['sizes']] == [16]
     assert heavy['sizes'][0]['fem_sag_frf_p50_s'] > 0 and heavy['sizes'][0]['fem_modes_p50_s'] > 0
+    assert heavy['sizes'][0]['frf_sag_end_stiffness_share'] > 0
     assert heavy['pose_update_fem_sag_n16']['dofs'] == 366
     under = result['underactuated']
     assert under['statics_at_equilibrium']['p50_s'] > 0 and under['geometrico_static']['p50_s'] > 0

@@ -220,8 +220,10 @@ def bench_underactuated(repeat: int) -> dict:
 def bench_heavy_sag(repeat: int, quick: bool) -> dict:
     """``config/heavy_sag_6dof.yaml``: fem_sag against fem at the same n (16 and 64; each at
     its own equilibrium, fem_sag's sag-consistent): the modes below ``frf.f_max_hz`` (counted)
-    and the configured FRF, interleaved call by call, p50 and fem_sag over fem; and the
-    in-process pose update of fem_sag 16 along a 5 cm circle (p50/p99, stages' p50)."""
+    and the configured FRF, interleaved call by call, p50 and fem_sag over fem, with the part
+    of fem_sag's FRF its cables' end stiffness takes (the element-by-element recursion at
+    the FRF's damped frequencies); and the in-process pose update of fem_sag 16 along a 5 cm
+    circle (p50/p99, stages' p50)."""
     from cdpr_dynamics.analysis.pipeline import equilibrium_for
     from cdpr_dynamics.dynamics.modes import modes
     settings = load_settings(Path(default_config_path()).parent / 'heavy_sag_6dof.yaml')
@@ -237,6 +239,12 @@ def bench_heavy_sag(repeat: int, quick: bool) -> dict:
             calls[method, 'modes'] = (lambda system=system: modes(system, settings.f_max_hz))
             calls[method, 'frf'] = (lambda system=system, damping=damping: frequency_response(
                 system, freqs, settings.frf_force_n, damping=damping))
+            if method == 'fem_sag':
+                w = 2.0 * np.pi * freqs                 # the FRF's lam (dynamic_stiffness)
+                lam = (w * w - 1j * w * damping.mass_factor) / (
+                    1.0 + 1j * w * damping.stiffness_factor)
+                calls[method, 'end_stiffness'] = (
+                    lambda system=system, lam=lam: system.assembly.end_stiffness(lam))
         samples = {key: [] for key in calls}
         for call in calls.values():
             call()
@@ -249,7 +257,9 @@ def bench_heavy_sag(repeat: int, quick: bool) -> dict:
         rows.append({'elements_per_cable': n, 'frf_points': int(freqs.size),
                      **{f'{method}_{what}_p50_s': value for (method, what), value in p50.items()},
                      'modes_sag_over_fem': p50['fem_sag', 'modes'] / p50['fem', 'modes'],
-                     'frf_sag_over_fem': p50['fem_sag', 'frf'] / p50['fem', 'frf']})
+                     'frf_sag_over_fem': p50['fem_sag', 'frf'] / p50['fem', 'frf'],
+                     'frf_sag_end_stiffness_share': p50['fem_sag', 'end_stiffness']
+                     / p50['fem_sag', 'frf']})
     update = bench_node.pose_updates(settings, (('fem_sag', 16),), n=30 if quick else 300)
     return {'config': 'heavy_sag_6dof.yaml', 'sizes': rows,
             'pose_update_fem_sag_n16': update['fem_sag_n16']}
@@ -369,7 +379,8 @@ def summary(result: dict) -> str:
                      f"{ms_['fem_sag_modes_p50_s']:.1f}/{ms_['fem_modes_p50_s']:.1f} ms "
                      f"(x{row['modes_sag_over_fem']:.1f}), {row['frf_points']}-point FRF "
                      f"{ms_['fem_sag_frf_p50_s']:.2f}/{ms_['fem_frf_p50_s']:.2f} ms "
-                     f"(x{row['frf_sag_over_fem']:.1f})")
+                     f"(x{row['frf_sag_over_fem']:.1f}; fem_sag's cable end stiffness "
+                     f"{100 * row['frf_sag_end_stiffness_share']:.0f} % of it)")
     update = heavy['pose_update_fem_sag_n16']
     lines.append(f"heavy_sag_6dof fem_sag n=16 pose update p50/p99 {update['p50_ms']:.2f}/"
                  f"{update['p99_ms']:.2f} ms (stages p50: " + ', '.join(
