@@ -73,7 +73,8 @@ class SagStatics:
     lifted one), ``iterations`` the SQP iterations, ``warnings`` one line each; ``step_qp``
     the warm-started QP of the SQP steps, which the next pose's :func:`sag_equilibrium`
     (``start``) reuses where the lower bounds are the same (its answers are KKT-checked: a warm
-    start only shortens the path).
+    start only shortens the path); ``chord_tension_n`` the first iterate it was given (the
+    chord tensions), whose change to the next pose's predicts that pose's tensions.
     """
 
     tension_n: np.ndarray
@@ -84,6 +85,7 @@ class SagStatics:
     iterations: int
     warnings: tuple[str, ...]
     step_qp: object = None      # the SQP's warm QP (_StepQP): reused by the next pose
+    chord_tension_n: np.ndarray | None = None
 
 
 #: the ufunc reductions behind ndarray.all/max/sum and np.clip, without their Python wrappers
@@ -167,7 +169,11 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
     ``cables`` at the pose, their ``tension_n`` the first iterate (e.g. the chord solution);
     ``lever_m`` (n, 3) r_i = R b_i; ``wrench`` (ndof,) what the cables must supply;
     ``start`` a nearby solution (the previous pose) whose tensions and catenaries warm-start the
-    iteration. Raises :class:`StaticsError` when no distribution exists in the box.
+    iteration: its tensions moved by the change of the first iterates (start's
+    ``chord_tension_n`` to ``cables.tension_n``), a first-order prediction that ends the SQP
+    an iteration earlier along a path (not where start lifted a lower bound: near the fold of
+    a catenary the prediction can overshoot). Raises :class:`StaticsError` when no
+    distribution exists in the box.
     """
     wrench = np.asarray(wrench, dtype=float)
     lever = np.asarray(lever_m, dtype=float)
@@ -175,7 +181,14 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
     n = cables.n_cables
     lower = np.full(n, float(t_min_n))
     warnings = []
-    tension = np.asarray(cables.tension_n if start is None else start.tension_n, dtype=float)
+    first = np.asarray(cables.tension_n, dtype=float)
+    if start is None:
+        tension = first
+    elif (start.chord_tension_n is None or start.chord_tension_n.shape != first.shape
+          or np.any(start.lower_bound_n > t_min_n)):
+        tension = np.asarray(start.tension_n, dtype=float)
+    else:
+        tension = start.tension_n + (first - start.chord_tension_n)
     tension = _clip(tension, lower, t_max_n)
     state, d_force, d_length = catenary.solve_with_sensitivity(
         cables.with_tension(tension), start=None if start is None else start.state)
@@ -227,7 +240,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
             step = proposal.tension_n - tension
         if size <= 1.0 and _max(np.abs(step)) <= step_tol:
             return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
-                              tuple(warnings) + _unreached(residual, tol / rtol), qp)
+                              tuple(warnings) + _unreached(residual, tol / rtol), qp, first)
         alpha = 1.0
         for _ in range(30 if size > 1.0 else FEASIBLE_HALVINGS):
             trial = _clip(tension + alpha * step, lower, t_max_n)
@@ -264,7 +277,7 @@ def sag_equilibrium(cables: CableSet, lever_m, wrench, t_min_n: float, t_max_n: 
                         f'{np.abs(residual[:3]).max():.2g} N) but the SQP did not settle on the '
                         f'least-norm distribution in {iterations} iterations{cause}')
         return SagStatics(tension, -state.force_n, state, residual, lower, iterations,
-                          tuple(warnings) + _unreached(residual, tol / rtol), qp)
+                          tuple(warnings) + _unreached(residual, tol / rtol), qp, first)
     raise StaticsError(f'no sag-consistent tension distribution: the SQP did not converge in '
                        f'{iterations} iterations (residual {WRENCH_AXES[worst]} '
                        f'{reached[worst]:.3g}){cause}')
