@@ -122,9 +122,12 @@ def _normals_of(wt: np.ndarray, subsets: np.ndarray) -> np.ndarray:
 
 @lru_cache(maxsize=4)
 def _minor_columns(d: int) -> tuple[np.ndarray, np.ndarray]:
-    """((d, d - 1) the columns left in each minor of a (d - 1, d) matrix, (d,) its sign)."""
-    return np.array([[j for j in range(d) if j != i] for i in range(d)]), \
-        (-1.0) ** np.arange(d)
+    """((d, d - 1) the columns left in each minor of a (d - 1, d) matrix, (d,) its sign),
+    read-only (kept)."""
+    cols = np.array([[j for j in range(d) if j != i] for i in range(d)])
+    sign = (-1.0) ** np.arange(d)
+    cols.flags.writeable = sign.flags.writeable = False
+    return cols, sign
 
 
 @lru_cache(maxsize=16)
