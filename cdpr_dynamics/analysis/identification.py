@@ -18,8 +18,9 @@ acceleration). :func:`identify_record`:
    orders, tracked from order to order by frequency, damping and shape
    (:func:`stable_poles`), refined by a variable-projection Levenberg-Marquardt fit of the
    decay sum_r Re(a_r e^{s_r t}) to the samples, whose Jacobian gives the standard
-   uncertainty of each frequency and damping ratio; poles the subspace missed are looked for
-   in the fit's residual (:func:`add_missed_poles`).
+   uncertainty of each frequency and damping ratio; of two reported poles within 2 % that
+   move alike the weaker is dropped (:func:`merge_alike`); poles the subspace missed are
+   looked for in the fit's residual (:func:`add_missed_poles`).
 
 The mode's direction is its residue vector over the platform DOFs (x y z, rotation vector),
 phase-aligned and normalised; an IMU's angular velocity and acceleration residues are divided
@@ -197,10 +198,10 @@ def decay_spans(fast: np.ndarray, dt: float, f_min_hz: float) -> list[tuple[int,
 
 def noise_level(y: np.ndarray, dt: float, f_above_hz: float) -> np.ndarray:
     """(c,): each channel's white-noise standard deviation, from its periodogram above
-    ``f_above_hz`` (no mode there): the median bin over ln 2 (the median of a chi-square
-    of two degrees of freedom over two)."""
+    ``f_above_hz`` (no mode there; at most 0.45 x the sample rate): the median bin over ln 2
+    (the median of a chi-square of two degrees of freedom over two)."""
     spectrum = np.abs(np.fft.rfft(y, axis=0)) ** 2 / y.shape[0]
-    band = np.fft.rfftfreq(y.shape[0], dt) >= f_above_hz
+    band = np.fft.rfftfreq(y.shape[0], dt) >= min(f_above_hz, 0.45 / dt)
     return np.sqrt(np.median(spectrum[band], axis=0) / math.log(2.0))
 
 
@@ -422,16 +423,31 @@ def _modes(fit: Fit, used: np.ndarray, kind: str, options: Options,
     return out
 
 
-def _distinct(fit: Fit, kept: list[int], weights: np.ndarray, tolerance: float = 0.02,
-              max_mac: float = 0.9) -> bool:
-    """Whether the kept poles within ``tolerance`` of each other move in different directions
-    (MAC of their residues, channels in units of ``weights``, below ``max_mac``): one mode
-    fitted by two poles would not."""
-    poles = fit.poles[kept]
+def _alike(fit: Fit, kept: list[int], weights: np.ndarray, tolerance: float = 0.02,
+           max_mac: float = 0.9):
+    """Two of the kept poles (indices into ``fit.poles``) within ``tolerance`` of each other in
+    frequency that move alike (MAC of their residues, channels in units of ``weights``, above
+    ``max_mac``): one mode fitted by two poles (a frequency drifting with the amplitude);
+    None if there are none."""
+    f = np.abs(fit.poles[kept])
     shapes = (fit.residues[kept] / weights).T
-    near = np.abs(poles[:, None] - poles[None, :]) < tolerance * np.abs(poles)[:, None]
+    near = np.abs(f[:, None] - f[None, :]) < tolerance * f[:, None]
     np.fill_diagonal(near, False)
-    return not np.any(near & (_mac(shapes, shapes) > max_mac))
+    pairs = np.argwhere(near & (_mac(shapes, shapes) > max_mac))
+    return None if pairs.size == 0 else (kept[pairs[0][0]], kept[pairs[0][1]])
+
+
+def merge_alike(t, y, weights, fit: Fit, valid, options: Options, f_max_hz: float,
+                kind: str, used: np.ndarray):
+    """Refit without the weaker of two reported poles that move alike (:func:`_alike`) until
+    no such pair is left. ``y`` (n, c) and ``weights`` (c,) are the ``used`` channels.
+
+    Returns (fit, [(pole index, mode)])."""
+    while (pair := _alike(fit, [r for r, _ in valid], weights)) is not None:
+        weaker = min(pair, key=lambda r: fit.snr[r])
+        fit = refine(t, y, [p for r, p in enumerate(fit.poles) if r != weaker], weights)
+        valid = _modes(fit, used, kind, options, f_max_hz)
+    return fit, valid
 
 
 def _residual_peak(fit: Fit, dt: float, f_min: float, f_max: float) -> float:
@@ -448,7 +464,7 @@ def add_missed_poles(t, y, weights, fit: Fit, valid, options: Options, f_max_hz:
     refined model's residual: a pole at the residual spectrum's highest peak (with the
     damping ratio of the nearest pole) joins the model if the refit leaves significantly less
     residual (F test at 1e-6), reports more modes, and no two of them within 2 % move alike
-    (:func:`_distinct`); at most ``tries`` poles. ``y`` (n, c) and ``weights`` (c,) are the
+    (:func:`_alike`); at most ``tries`` poles. ``y`` (n, c) and ``weights`` (c,) are the
     ``used`` channels.
 
     Returns (fit, [(pole index, mode)])."""
@@ -471,7 +487,7 @@ def add_missed_poles(t, y, weights, fit: Fit, valid, options: Options, f_max_hz:
             scipy.stats.f.isf(1e-6, added, dof)
         found = _modes(trial, used, kind, options, f_max_hz)
         if not (significant and len(found) > len(valid)
-                and _distinct(trial, [r for r, _ in found], weights)):
+                and _alike(trial, [r for r, _ in found], weights) is None):
             break
         fit, valid = trial, found
     return fit, valid
@@ -503,6 +519,8 @@ def identify_decay(t: np.ndarray, y: np.ndarray, kind: str, options: Options,
         return []
     fit = refine(t, y[:, used], poles[:options.max_modes], weights[used])
     valid = _modes(fit, used, kind, options, f_max_hz)
+    fit, valid = merge_alike(t, y[:, used], weights[used], fit, valid, options, f_max_hz, kind,
+                             used)
     fit, valid = add_missed_poles(t, y[:, used], weights[used], fit, valid, options, f_max_hz,
                                   kind, used)
     return sorted((mode for _, mode in valid), key=lambda mode: mode.frequency_hz)
