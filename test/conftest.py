@@ -4,6 +4,7 @@ from __future__ import annotations
 import itertools
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -16,6 +17,12 @@ REPO = Path(__file__).resolve().parents[1]
 TEST_OUTPUT = REPO / 'test_output'
 PAPER_CONFIG = REPO / 'config' / 'paper_cdpr.yaml'
 _domain_counter = itertools.count()
+
+# A suite started as a background job of a shell without job control (``scripts/test.sh ... &``)
+# inherits SIGINT ignored, and so would every child it starts: the Ctrl-C tests would then
+# interrupt nothing. Children start as they do from a terminal.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def unique_domain_id() -> int:

@@ -256,6 +256,27 @@ def test_warm_start_gives_the_cold_answers_in_no_more_iterations(platform, reque
     assert warm_total < cold_total
 
 
+def test_equal_inputs_give_equal_tensions_bit_for_bit():
+    """Node, replay and tools each build their own solver: fed the same structure matrices,
+    every fresh solver answers with the same bits, also where the answer comes from a
+    warm-started proxsuite QP, whose own last bits differ from one QP object to another
+    (~1e-13 N here: the paper robot from its centre to 0.9 m sideways, tensions 100-1000 N)."""
+    settings = load_settings()
+    w = required_wrench(settings.robot)
+    path = [geometry(settings.robot, p).structure_matrix
+            for p in (settings.initial_position_m, [0.9005, 0.0, 1.25], [-0.4, 0.6, 0.8])]
+    runs = set()
+    held = []
+    for k in range(12):
+        held.append(np.empty(1 + 37 * k))                  # other addresses for each solver
+        solver = TensionSolver(settings.robot.n_cables, settings.robot.platform_dofs, 100.0,
+                               1000.0)
+        answers = [solver.solve(wt, w) for wt in path]
+        assert all(a.feasible for a in answers) and answers[1].iterations > 0   # proxsuite's
+        runs.add(b''.join(a.tension_n.tobytes() for a in answers))
+    assert len(runs) == 1
+
+
 def test_solver_recovers_after_failures(paper):
     """An infeasible or non-finite request drops the warm start; the next answer is exact."""
     wt = geometry(paper, CENTRE).structure_matrix

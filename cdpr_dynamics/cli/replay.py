@@ -24,6 +24,7 @@ a run without ``--resume`` names and removes it (as it does the leftover of a ki
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -113,10 +114,16 @@ def _offline(args) -> int:
                                                 load_replay_config, replay_offline,
                                                 summary_lines)
 
-    def on_term(signum, frame):   # as Ctrl-C: the partial output is removed
+    def on_signal(signum, frame):
+        """Ctrl-C or SIGTERM: the replay stops and keeps its partial output for --resume; a
+        second one while that is written ends the process at once."""
+        if getattr(on_signal, 'seen', False):
+            os._exit(_fail('interrupted again: the partial output may be incomplete', 130))
+        on_signal.seen = True
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGINT, on_signal)        # replaces the console script's own
+    signal.signal(signal.SIGTERM, on_signal)
     bar = _Bar(not args.no_progress and sys.stderr.isatty(), 'msg', 'replay')
     try:
         settings, options, flat = load_replay_config(args.config)

@@ -205,15 +205,16 @@ class TensionSolver:
         self._qp = None
         self._active = None
 
-    def _remember(self, tension: np.ndarray) -> None:
+    def _active_of(self, tension: np.ndarray) -> np.ndarray:
         """The active set of an answer: the tensions within ``tolerance_n`` of a bound."""
-        if self.warm_start and self._h is not None:
-            self._active = (np.where(tension >= self.t_max_n - self.tolerance_n, 1, 0)
-                            - (tension <= self.t_min_n + self.tolerance_n)).astype(np.int8)
+        return (np.where(tension >= self.t_max_n - self.tolerance_n, 1, 0)
+                - (tension <= self.t_min_n + self.tolerance_n)).astype(np.int8)
 
     @np.errstate(invalid='ignore', over='ignore')   # inf or huge input fails the checks below
-    def _active_set(self, wt: np.ndarray, w: np.ndarray, start: float) -> TensionResult | None:
-        """The warm active-set answer (module docstring), or None where it does not settle.
+    def _active_set(self, wt: np.ndarray, w: np.ndarray, start: float,
+                    active: np.ndarray) -> TensionResult | None:
+        """The active-set answer from ``active`` (module docstring), or None where it does not
+        settle; with warm starts on, the set it settles on is kept for the next solve.
 
         Per round: the gram G = W^T_F diag(1/h_F) W_F and the right side r = w - W^T base
         (G = W^T W, r = w when every tension is free and C = I, c = 0), lambda = G^-1 r by one
@@ -224,7 +225,6 @@ class TensionSolver:
         taken over Python lists; NaN still fails: NaN in p makes T NaN and so every entry of
         W^T T - w, whose maximum is then NaN."""
         tol = self._kkt_tol
-        active = self._active
         for _ in range(ACTIVE_SET_ROUNDS):
             inv_free, base, gain, offset, plain = self._set_terms(active)
             if plain:
@@ -247,7 +247,8 @@ class TensionSolver:
                 residual = max(map(abs, miss.tolist()))     # NaN where T has a NaN
                 if not residual <= self.tolerance_n:
                     return None
-                self._active = active
+                if self.warm_start:
+                    self._active = active
                 return TensionResult.solved(tension, residual, time.perf_counter() - start,
                                             self.tolerance_n)
             # bound multipliers mu = h T + c - W lambda (0 where free): the next set
@@ -305,9 +306,9 @@ class TensionSolver:
         if wt.shape != (self.ndof, self.n_cables) or w.shape != (self.ndof,):
             raise ValueError(f'expected structure matrix ({self.ndof}, {self.n_cables}) and '
                              f'wrench ({self.ndof},), got {wt.shape} and {w.shape}')
-        if self._active is not None:   # warm: the previous answer's active set (a KKT point
-            result = self._active_set(wt, w, start)   # is feasible: no test needed before it;
-            if result is not None:                    # NaN fails its checks)
+        if self._active is not None:   # warm: the previous answer's active set (a KKT point is
+            result = self._active_set(wt, w, start, self._active)   # feasible: no test needed
+            if result is not None:                         # before it; NaN fails its checks)
                 return result
         # Necessary condition, per wrench component: reachable range of W^T T over the box.
         # NaN or inf anywhere in W^T or w makes the test fail too, so it is the finite check.
@@ -374,7 +375,15 @@ class TensionSolver:
                 if self.warm_start:
                     qp.settings.initial_guess = _proxqp.WARM_START_WITH_PREVIOUS_RESULT
                     self._qp = qp
-                    self._remember(tension)
+                # proxsuite's last bits vary from one QP object to another (a warm-started
+                # solve of equal data differs by ~1e-13 N): the answer is the exact KKT
+                # solution on its active set, so equal inputs give equal tensions everywhere
+                polished = (None if self._h is None else
+                            self._active_set(wt, w, start, self._active_of(tension)))
+                if polished is not None:
+                    tension, residual = polished.tension_n, polished.residual_n
+                elif self.warm_start and self._h is not None:
+                    self._active = self._active_of(tension)
                 return TensionResult(tension, 'solved', True, residual, iterations, '',
                                      time.perf_counter() - start, self.tolerance_n)
             status = 'infeasible'  # 'solved' by proxsuite but outside Eqs. 11-12
