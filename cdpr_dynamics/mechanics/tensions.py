@@ -25,10 +25,10 @@ Between nearby poses the QP is answered from the previous pose's active set (one
 ndof x ndof linear solve, KKT-checked: exact where it holds; proxsuite decides otherwise). A
 proxsuite answer is polished the same way on its own active set: its last bits differ from one
 QP object to another, the polished tensions are a function of W^T and w alone (node, replay and
-tools give the same bits). Infeasibility is never taken on the solver's word alone: a per-component reachability test,
-a check of the returned T against (11) and (12) within ``tolerance_n``, and the box tensions
-closest to w (:func:`closest_tensions`) when the QP fails. The derivations: doc/theory.md,
-section "Cable tensions".
+tools give the same bits). Infeasibility is never taken on the solver's word alone: a
+per-component reachability test, a check of the returned T against (11) and (12) within
+``tolerance_n``, and the box tensions closest to w (:func:`closest_tensions`) when the QP
+fails. The derivations: doc/theory.md, section "Cable tensions".
 """
 from __future__ import annotations
 

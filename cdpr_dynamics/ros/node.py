@@ -181,6 +181,10 @@ class DynamicsNode(Node):
                                                     qos_profile_sensor_data)
         self.wrench_sub = self.io.create_subscription(WrenchStamped, 'wrench', self.on_wrench,
                                                       sensor)
+        subs = (self.pose_sub, self.wrench_sub)
+        self._input_takes = [functools.partial(take_next, sub) for sub in subs]
+        self._input_handles = (self._handle_pose, self._handle_wrench)
+        self._input_budget = sum(sub.qos_profile.depth for sub in subs)
         self.frf = FrfServer(self, self._worker, self._wake, self._own_modes)
         self._worker_guard = self.create_guard_condition(self._on_worker_done)
         self.add_on_set_parameters_callback(self.on_set_parameters)
@@ -310,10 +314,8 @@ class DynamicsNode(Node):
         wait set costs more than a prediction, so a burst is taken in one go: up to both
         queues' depth (beyond that the node receives more than it can handle, and the queues
         drop inputs)."""
-        subs = (self.pose_sub, self.wrench_sub)
-        handle_in_stamp_order((pose, wrench), [functools.partial(take_next, s) for s in subs],
-                              (self._handle_pose, self._handle_wrench),
-                              sum(s.qos_profile.depth for s in subs))
+        handle_in_stamp_order((pose, wrench), self._input_takes, self._input_handles,
+                              self._input_budget)
 
     @_locked
     def _handle_pose(self, msg: PoseStamped) -> None:
