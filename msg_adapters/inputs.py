@@ -42,6 +42,9 @@ class InputHandler:
     sender's clock jumped back (the stream restarted at the new stamp), or the integrator
     skipped part of a long interval (``node.max_steps_per_wrench``). :attr:`last_wrench_ns`
     is the time the last wrench was taken at (its arrival time for an unstamped one).
+    After an accepted pose, :attr:`late_by_ns` is None, or (the pose came after a wrench stamped
+    at or after it, which was therefore predicted with the previous pose, unlike a replay in
+    stamp order) how far the pose's stamp lies behind the last wrench's (0 at equal stamps).
     """
 
     def __init__(self, predictor: LivePredictor, frame_id: str, quaternion_tolerance: float,
@@ -52,6 +55,7 @@ class InputHandler:
         self.pose_clock = StampClock('pose', policy)
         self.wrench_clock = StampClock('wrench', policy)
         self.notice = ''
+        self.late_by_ns: int | None = None
 
     @property
     def policy(self) -> StampPolicy:
@@ -93,6 +97,9 @@ class InputHandler:
             raise InvalidMessage(f'{type(exc).__name__}: {clip(exc)}', 'internal') from None
         self.pose_clock.accept(stamp)
         self.notice = stamp.note
+        last = self.wrench_clock.last_ns
+        self.late_by_ns = (last - stamp.ns if last is not None and stamp.ns <= last
+                           and not stamp.jumped else None)
         return update
 
     def pose_still(self, stamp_ns: int, frame_id: str, values: tuple) -> bool:

@@ -162,6 +162,29 @@ def test_a_backlog_beyond_the_budget_is_left_waiting_in_order():
     assert order == [0, 1, 2, 3] and take_wrench().header.stamp.nanosec == 4
 
 
+def test_a_pose_taken_after_a_later_wrench_is_counted_late(settings):
+    # the topics are delivered apart: on a busy host a pose can reach the node after a wrench
+    # stamped at or after it, which was then predicted with the previous pose
+    handler = handler_for(settings)
+    frame = settings.robot.frame_id
+
+    def pose(t_ns, x=0.0):
+        handler.pose(pose_message([x, 0.0, 1.25], frame_id=frame, stamp=ns_to_stamp(t_ns)),
+                     NOW_NS)
+        return handler.late_by_ns
+
+    assert pose(NOW_NS - S) is None                      # no wrench yet
+    send(handler, NOW_NS - S + 3_000_000)
+    assert pose(NOW_NS - S + 5_000_000, 0.01) is None     # in time
+    send(handler, NOW_NS - S + 9_000_000)
+    assert pose(NOW_NS - S + 7_000_000, 0.02) == 2_000_000
+    assert pose(NOW_NS - S + 9_000_000, 0.03) == 0        # at the wrench's stamp: it came first
+    assert pose(NOW_NS - S + 10_000_000) is None
+    with pytest.raises(InvalidMessage):                   # a rejected pose leaves it as it was
+        pose(NOW_NS - S + 4_000_000)
+    assert handler.late_by_ns is None
+
+
 def test_a_pose_stamped_in_the_future_does_not_freeze_the_model(settings):
     handler = handler_for(settings)
     frame = settings.robot.frame_id

@@ -479,6 +479,7 @@ def run(args) -> dict:
             'node_wrenches_rejected': status_count(wrench_status, 'rejected'),
             'node_poses_accepted': status_count(pose_status, 'accepted'),
             'node_poses_rejected': status_count(pose_status, 'rejected'),
+            'node_poses_late': status_count(pose_status, 'late'),
             'latency_ms_p50': float(np.percentile(latency, 50)),
             'latency_ms_p99': float(np.percentile(latency, 99)),
             'max_displacement_m': float(np.abs(pred[:, 1:]).max()),

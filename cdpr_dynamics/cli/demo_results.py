@@ -68,8 +68,8 @@ class TensionEstimate:
 
 
 def input_sentence(what: str, sent: int, status: dict | None) -> str:
-    """'N published, A accepted by the node, R rejected (kinds; last reason)' from the node's
-    ``<what> input`` diagnostics."""
+    """'N published, A accepted by the node, R rejected (kinds; last reason)', the poses the
+    node took late and the inputs it never took, from the node's ``<what> input`` diagnostics."""
     if status is None:
         return f'{what}: {sent} published; the node reported no counts'
     values = status['values']
@@ -79,6 +79,10 @@ def input_sentence(what: str, sent: int, status: dict | None) -> str:
         kinds = ', '.join(f'{k[len("rejected_"):]} {v}' for k, v in values.items()
                           if k.startswith('rejected_'))
         text += f' ({kinds}; last: {values.get("last_rejection", "?")})'
+    late = status_count(status, 'late')
+    if late:
+        text += (f', {late} taken after a wrench stamped at or after it (up to '
+                 f'{float(values["late_max_ms"]):.3g} ms; that wrench had the previous pose)')
     lost = sent - (accepted or 0) - rejected
     if lost > 0:
         text += (f', {lost} not taken by the node (dropped from its queue while it was busy; '

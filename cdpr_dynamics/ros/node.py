@@ -150,6 +150,8 @@ class DynamicsNode(Node):
         logger = self.get_logger()
         self.pose_health = InputHealth(logger.get_child('pose'), diag.ERROR)
         self.wrench_health = InputHealth(logger.get_child('wrench'), diag.WARN)
+        # poses taken after a wrench stamped at or after them (msg_adapters.inputs: late_by_ns)
+        self._late_poses = {'late': 0, 'late_max_ms': 0.0}
         self._update_modal()
         self._warm_up()
         self._check_budget()
@@ -332,6 +334,10 @@ class DynamicsNode(Node):
             self.diag_dirty = True
         if self.inputs.notice:
             self.diag_dirty = self.pose_health.warn('clock', self.inputs.notice)
+        if self.inputs.late_by_ns is not None:
+            late = self._late_poses
+            late['late'] += 1
+            late['late_max_ms'] = max(late['late_max_ms'], self.inputs.late_by_ns * 1e-6)
         if update.rebuilt:
             self._rebuilt(update, self.inputs.last_pose_ns)
         if not background or not self._queue_pose(*self._held_pose):
@@ -663,7 +669,8 @@ class DynamicsNode(Node):
                  + self._shaping_skipped + self._budget_warnings
                  + self._name_warnings}
         return [diagnostics.model_status(name, hw, self.predictor, modal, extra),
-                diagnostics.input_status(name, 'pose input', self.pose_health, {}, hw),
+                diagnostics.input_status(name, 'pose input', self.pose_health,
+                                         self._late_poses, hw),
                 diagnostics.input_status(name, 'wrench input', self.wrench_health,
                                          self.timings.wrench_values(), hw),
                 self.frf.status(name, hw)]
