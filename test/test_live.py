@@ -261,43 +261,181 @@ def test_a_checkpoint_of_another_model_is_refused():
         other.restore(running.checkpoint())
 
 
+def _alone_and_in_runs(settings, slack, stamps, force, moment, window=None):
+    """A wrench stream through ``advance`` one by one and through ``advance_run`` (at most
+    ``window`` wrenches a call), ``advance`` taking each wrench a run stops before: (the
+    one-by-one predictor, the runs' predictor, q after each wrench (m, nd) alone and in runs,
+    the wrenches the runs stopped before)."""
+    alone, run = LivePredictor(settings, slack=slack), LivePredictor(settings, slack=slack)
+    q_alone = np.array([alone.advance(int(t), f, m) for t, f, m in zip(stamps, force, moment)])
+    q_run, start, stops = [], 0, []
+    window = window or stamps.size
+    while start < stamps.size:
+        end = start + window
+        done, q = run.advance_run(stamps[start:end], force[start:end], moment[start:end])
+        q_run.extend(q[:, :3])
+        start += done
+        if start < stamps.size and done < window:
+            q_run.append(run.advance(int(stamps[start]), force[start], moment[start]))
+            stops.append(start)
+            start += 1
+    return alone, run, q_alone, np.array(q_run), stops
+
+
+def _wrench_stream(count: int, amplitude_n: float, push_n: float, push_at: int,
+                   gap_at: int) -> tuple:
+    """(stamps, forces, moments) of ``count`` wrenches: ``amplitude_n`` at 5 Hz along z (and
+    a tenth of it as a 3 Hz moment about x), a 40-wrench push of ``push_n`` from ``push_at``,
+    intervals of 0, 1, 2 steps and sub-step remainders and one of 150 steps at ``gap_at``."""
+    gaps = np.resize([1_000_000, 1_000_000, 0, 2_000_000, 1_300_000, 700_000], count)
+    gaps[gap_at] = 150_000_000
+    stamps = 1_700_000_000_000_000_000 + np.cumsum(gaps)
+    t = (stamps - stamps[0]) * 1e-9
+    force = np.zeros((count, 3))
+    force[:, 2] = amplitude_n * np.sin(2 * np.pi * 5.0 * t)
+    force[push_at:push_at + 40, 2] = push_n
+    moment = np.zeros((count, 3))
+    moment[:, 0] = 0.1 * amplitude_n * np.cos(2 * np.pi * 3.0 * t)
+    return stamps, force, moment
+
+
 @pytest.mark.parametrize('method, elements, slack', [('spring', 1, 'aware'),
                                                      ('fem', 4, 'aware'),
                                                      ('fem', 4, 'linear')])
-def test_a_run_of_wrenches_advances_as_each_wrench_alone(method, elements, slack):
-    """advance_run over a wrench stream equals advance wrench by wrench bit for bit (state,
-    platform q after each wrench, slack time, held load): 200 N at 5 Hz with a 1500 N push
-    that slackens cables (the run stops before the wrench whose steps reach slack and advance
+def test_a_run_of_wrenches_advances_as_each_wrench_alone(method, elements, slack, monkeypatch):
+    """advance_run over a wrench stream equals advance wrench by wrench (state, platform q
+    after each wrench, slack time, held load): 200 N at 5 Hz with a 1500 N push that
+    slackens cables (the run stops before the wrench whose steps reach slack and advance
     takes it), intervals of 0, 1, 2 and 150 steps (closed form or capped: advance's) and
-    sub-step remainders."""
+    sub-step remainders. Bit for bit where the runs step the integrator (spring); fem's runs
+    step in the model's modes, a different order of the same arithmetic: equal to round-off
+    (test_runs_in_the_modes_equal_the_steps_to_round_off)."""
+    from cdpr_dynamics.dynamics.held_load import HeldLoadSteps
+
     settings = load_settings().replace(method=method, elements_per_cable=elements)
-    alone, run = LivePredictor(settings, slack=slack), LivePredictor(settings, slack=slack)
-    gaps = np.tile([1_000_000, 1_000_000, 0, 2_000_000, 1_300_000, 700_000], 100)
-    gaps[250] = 150_000_000
-    stamps = 1_700_000_000_000_000_000 + np.cumsum(gaps)
-    force = np.zeros((stamps.size, 3))
-    force[:, 2] = 200.0 * np.sin(2 * np.pi * 5.0 * (stamps - stamps[0]) * 1e-9)
-    force[300:340, 2] = 1500.0                      # a 40-wrench push that slackens cables
-    moment = np.zeros((stamps.size, 3))
-    q_alone = np.array([alone.advance(int(t), f, m) for t, f, m in zip(stamps, force, moment)])
-    q_run, start, alone_calls = [], 0, 0
-    while start < stamps.size:
-        done, q = run.advance_run(stamps[start:], force[start:], moment[start:])
-        q_run.extend(q[:, :3])
-        start += done
-        if start < stamps.size:
-            q_run.append(run.advance(int(stamps[start]), force[start], moment[start]))
-            start += 1
-            alone_calls += 1
-    assert np.array_equal(np.array(q_run), q_alone)
-    assert np.array_equal(run.integrator._state, alone.integrator._state)
+    stamps, force, moment = _wrench_stream(600, 200.0, 1500.0, 300, 250)
+    moment[:] = 0.0
+    in_modes, run = [], HeldLoadSteps.run
+    monkeypatch.setattr(HeldLoadSteps, 'run', lambda self, *args: (
+        in_modes.append(1) or run(self, *args)))
+    alone, run, q_alone, q_run, stops = _alone_and_in_runs(settings, slack, stamps, force,
+                                                           moment)
+    modal = method == 'fem'
+    assert bool(in_modes) == modal                 # fem's runs went in the modes
+    if modal:
+        scale = np.abs(q_alone).max()
+        assert np.abs(q_run - q_alone).max() <= 1e-9 * scale
+        for got, expected in zip(run.integrator._state, alone.integrator._state):
+            assert np.abs(got - expected).max() <= 1e-9 * np.abs(expected).max() + 1e-300
+    else:
+        assert np.array_equal(q_run, q_alone)
+        assert np.array_equal(run.integrator._state, alone.integrator._state)
     assert run.slack_time_s == alone.slack_time_s
     assert np.array_equal(run._load, alone._load) and run._remainder_ns == alone._remainder_ns
     if slack == 'aware':
         assert alone.slack_time_s > 0.01           # slack for a while, and the runs stopped
-        assert 10 < alone_calls < stamps.size / 4   # for it, but most wrenches went in runs
-    disp, position, quaternion = run.predictions(np.array(q_run)[-5:], (0.0, 0.0, 0.0))
+        assert 10 < len(stops) < stamps.size / 4   # for it, but most wrenches went in runs
+    disp, position, quaternion = run.predictions(q_run[-5:], (0.0, 0.0, 0.0))
     single = run.prediction()
     assert np.array_equal(disp[-1], single.displacement_m)
     assert np.array_equal(position[-1], single.position_m)
     assert np.array_equal(quaternion[-1], single.quaternion)
+
+
+@pytest.mark.parametrize('slack', ['aware', 'linear'])
+@pytest.mark.parametrize('config, amplitude_n, push_n', [('paper_cdpr.yaml', 200.0, 1500.0),
+                                                         ('heavy_sag_6dof.yaml', 2.0, 100.0),
+                                                         ('low_tension_cdpr.yaml', 5.0, 300.0)])
+def test_runs_in_the_modes_equal_the_steps_to_round_off(config, amplitude_n, push_n, slack,
+                                                        monkeypatch):
+    """fem 16 (363 and 366 DOFs): runs stepped in the model's modes give the predictions of
+    advance one wrench at a time within 1e-9 of the peak |u|, and stop before the same
+    wrenches as runs of the integrator's own steps (bit for bit with advance): a push that
+    slackens a cable mid-run, intervals of 0 to 150 steps, on the paper robot (3 DOFs), a
+    heavy-sag 6-DOF platform (moments too) and a low-tension robot. Every run takes the modal
+    path here (MODAL_RUN_PAYBACK raised: windows of 256 wrenches)."""
+    from cdpr_dynamics.analysis import live
+    from cdpr_dynamics.dynamics.held_load import HeldLoadSteps
+
+    settings = load_settings(CONFIG_DIR / config).replace(method='fem', elements_per_cable=16)
+    stream = _wrench_stream(1200, amplitude_n, push_n, 800, 300)
+    monkeypatch.setattr(live, 'MODAL_RUN_PAYBACK', 0)          # no modes: the steps
+    stepped = _alone_and_in_runs(settings, slack, *stream, window=256)
+    monkeypatch.setattr(live, 'MODAL_RUN_PAYBACK', 10**6)      # the modes for every run
+    steps_in_modes = []
+    run = HeldLoadSteps.run
+    monkeypatch.setattr(HeldLoadSteps, 'run', lambda self, state, loads, steps, nd: (
+        steps_in_modes.append(int(steps.sum())) or run(self, state, loads, steps, nd)))
+    alone, modal, q_alone, q_modal, stops = _alone_and_in_runs(settings, slack, *stream,
+                                                               window=256)
+    assert np.array_equal(stepped[3], q_alone) and not stepped[1]._held
+    assert sum(steps_in_modes) > 1000 and modal.integrator.u.size > 360
+    assert stops == stepped[4] and 0 < len(stops) < 400         # the same stops, for slack
+    assert alone.slack_time_s > 0.01 and modal.slack_time_s == alone.slack_time_s
+    difference = np.abs(q_modal - q_alone).max()
+    peak = np.abs(q_alone).max()
+    print(f'\n{config} {slack}: max |difference| {difference / peak:.2g} x peak |u|')
+    assert difference <= 1e-9 * peak
+    nd = modal.system.platform_dofs
+    assert np.abs(modal.integrator.u[:nd] - alone.integrator.u[:nd]).max() <= 1e-9 * peak
+
+
+def test_runs_step_where_the_model_has_no_modes(settings, monkeypatch):
+    """Where the modes cannot be had (matrices not finite, damping not Rayleigh, more DOFs
+    than held_load.MAX_DOFS) runs take the integrator's steps: advance's numbers bit for bit."""
+    from cdpr_dynamics.dynamics import held_load
+    from cdpr_dynamics.dynamics.held_load import HeldLoadSteps
+    from cdpr_dynamics.dynamics.system import DynamicsError
+
+    predictor = LivePredictor(settings)
+    k, m, a = predictor.integrator.k, predictor.integrator.m, predictor.integrator.a
+    damping = predictor.integrator.damping
+    with pytest.raises(DynamicsError, match='finite K, M and Rayleigh damping'):
+        HeldLoadSteps(np.where(k.toarray() != 0.0, np.inf, 0.0), m, damping, a)
+    with pytest.raises(DynamicsError, match='finite K, M and Rayleigh damping'):
+        HeldLoadSteps(k, m, (damping.mass_factor, damping.stiffness_factor), a)
+    stream = _wrench_stream(600, 200.0, 0.0, 300, 250)
+    for patch in ('no modes', 'too many DOFs'):
+        with monkeypatch.context() as context:
+            if patch == 'too many DOFs':
+                context.setattr(held_load, 'MAX_DOFS', 10)
+            else:
+                def refused(*args):
+                    raise DynamicsError('not Rayleigh')
+                context.setattr('cdpr_dynamics.analysis.live.HeldLoadSteps', refused)
+            alone, run, q_alone, q_run, stops = _alone_and_in_runs(settings, 'aware', *stream)
+        assert run._held is False and stops == [0, 250]   # the first, the 150-step gap
+        assert np.array_equal(q_run, q_alone)
+        assert np.array_equal(run.integrator._state, alone.integrator._state)
+
+
+def test_modal_steps_equal_newmark_steps_from_any_state(settings):
+    """HeldLoadSteps.run against Newmark.step from a state whose acceleration does not
+    balance the load (as after a model change), under loads that change every step and are
+    held for several: the platform rows after every step and the final state to round-off."""
+    from cdpr_dynamics.dynamics.held_load import HeldLoadSteps
+
+    predictor = LivePredictor(settings)
+    integrator, nd = predictor.integrator, predictor.system.platform_dofs
+    n = integrator.u.size
+    modes = HeldLoadSteps(integrator.k, integrator.m, integrator.damping, integrator.a)
+    rng = np.random.default_rng(3)
+    state = rng.standard_normal((3, n)) * [[1e-4], [1e-3], [1e-1]]
+    loads = rng.standard_normal((700, nd)) * 300.0
+    steps = rng.integers(0, 4, size=700)
+    taken, after = modes.run(state, loads, steps, nd)
+    integrator._state[:] = state
+    expected = []
+    for load, times in zip(loads, steps):
+        full = np.zeros(n)
+        full[:nd] = load
+        for _ in range(times):
+            integrator.step(full)
+            expected.append(integrator._state[:2, :nd].copy())
+    expected = np.array(expected)
+    assert taken.shape == expected.shape == (steps.sum(), 2, nd) and steps.sum() > 256
+    for row in range(2):
+        peak = np.abs(expected[:, row]).max()
+        assert np.abs(taken[:, row] - expected[:, row]).max() <= 1e-9 * peak
+    for got, want in zip(after, integrator._state):
+        assert np.abs(got - want).max() <= 1e-9 * np.abs(want).max()

@@ -621,7 +621,13 @@ def test_interrupted_replay_resumes_to_the_uninterrupted_output(sig, minute_log,
     assert leftovers(tmp_path) == []
     resumed = file_messages(out)
     assert len(resumed) == len(reference)
-    assert sorted(resumed) == sorted(reference)
+    if sig == signal.SIGKILL:
+        # the written inputs predicted again one at a time, where the uninterrupted replay
+        # stepped fem's runs in the model's modes (a different order of the same arithmetic):
+        # its state, and the predictions after it, equal to round-off
+        assert predictions_off_by(resumed, reference) <= 1e-9
+    else:
+        assert sorted(resumed) == sorted(reference)
 
 
 def test_a_killed_replays_partial_output_is_named_and_removed(minute_log, tmp_path, ros_env):
@@ -1100,6 +1106,36 @@ def test_a_replay_that_lacks_the_pose_before_a_wrench_says_so(tmp_path):
 # ----------------------------------------------------------------------------- runs
 
 
+def predictions_off_by(messages: list, reference: list) -> float:
+    """The largest difference of the predictions (predicted_displacement, and the
+    predicted_pose's position and quaternion) in ``messages`` from those in ``reference``
+    (:func:`file_messages` of two files) over the reference's peak |displacement|, once every
+    message is checked to be the reference's (topic, log and publish time) and every other
+    message's bytes equal."""
+    from geometry_msgs.msg import PoseStamped, Vector3Stamped
+    from rclpy.serialization import deserialize_message
+
+    def key(message):
+        return message[:3]
+    mine, theirs = sorted(messages, key=key), sorted(reference, key=key)
+    assert [key(m) for m in mine] == [key(m) for m in theirs]
+    differ = {m[0] for m, t in zip(mine, theirs) if m[3] != t[3]}
+    assert differ <= {'/predicted_displacement', '/predicted_pose'}, differ
+
+    def numbers(data: bytes, topic: str) -> np.ndarray:
+        if topic == '/predicted_displacement':
+            v = deserialize_message(data, Vector3Stamped).vector
+            return np.array([v.x, v.y, v.z])
+        pose = deserialize_message(data, PoseStamped).pose
+        p, q = pose.position, pose.orientation
+        return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
+    peak = max(np.abs(numbers(t[3], t[0])).max() for t in theirs
+               if t[0] == '/predicted_displacement')
+    largest = max((np.abs(numbers(m[3], m[0]) - numbers(t[3], t[0])).max()
+                   for m, t in zip(mine, theirs) if m[3] != t[3]), default=0.0)
+    return largest / peak
+
+
 def mixed_log(path: Path, position) -> None:
     """600 wrenches at 1 kHz (200 N at 5 Hz, a 40-wrench 1500 N push that slackens cables)
     with refused ones among them (not finite, out of order, another frame, unstamped,
@@ -1141,8 +1177,11 @@ def test_runs_write_what_one_input_at_a_time_writes(source, method, tmp_path, mo
     message at a time writes, byte for byte: every golden scenario's inputs and a log with
     refused wrenches and poses amid the runs, a pose that moves the model and a push that
     slackens cables (slack-aware steps in the middle of a run), on the paper robot and on a
-    6-DOF platform (fem_sag, predictions at a point off the centroid)."""
+    6-DOF platform (fem_sag, predictions at a point off the centroid). Where runs step in the
+    model's modes (fem: HeldLoadSteps.run), a different order of the same arithmetic, the
+    predictions are equal to round-off (1e-9 of the peak |u|) and every other byte equal."""
     from cdpr_dynamics.analysis.live import LivePredictor
+    from cdpr_dynamics.dynamics.held_load import HeldLoadSteps
     from cdpr_dynamics.recording import replay
 
     if method == 'heavy_sag_6dof':
@@ -1155,8 +1194,13 @@ def test_runs_write_what_one_input_at_a_time_writes(source, method, tmp_path, mo
         mixed_log(path, settings.initial_position_m)
     else:
         path = golden(source)
-    counts = {'run': 0, 'slack': 0}
+    counts = {'run': 0, 'slack': 0, 'modes': 0}
     wrench_run, enter_slack = replay.InputHandler.wrench_run, LivePredictor._enter_slack
+    modal_run = HeldLoadSteps.run
+
+    def counted_modes(self, *args):
+        counts['modes'] += 1
+        return modal_run(self, *args)
 
     def counted_run(self, *args):
         done, q = wrench_run(self, *args)
@@ -1168,6 +1212,7 @@ def test_runs_write_what_one_input_at_a_time_writes(source, method, tmp_path, mo
         return enter_slack(self, *args, **kwargs)
     monkeypatch.setattr(replay.InputHandler, 'wrench_run', counted_run)
     monkeypatch.setattr(LivePredictor, '_enter_slack', counted_slack)
+    monkeypatch.setattr(HeldLoadSteps, 'run', counted_modes)
     (tmp_path / 'runs').mkdir()
     (tmp_path / 'single').mkdir()
     runs = replay_offline(path, tmp_path / 'runs' / 'out.mcap', settings, options=options)
@@ -1181,7 +1226,15 @@ def test_runs_write_what_one_input_at_a_time_writes(source, method, tmp_path, mo
     assert counts['run'] == 0
     assert (runs.rejected, runs.wrenches_accepted) == (single.rejected, single.wrenches_accepted)
     files = tmp_path / 'runs' / 'out.mcap', tmp_path / 'single' / 'out.mcap'
-    assert files[0].read_bytes() == files[1].read_bytes()
+    if method != 'fem':
+        assert counts['modes'] == 0
+    if method == 'fem':       # runs in the modes: the steps' numbers to round-off
+        assert counts['modes']
+        off_by = predictions_off_by(*map(file_messages, files))
+        print(f'\n{source} {method}: predictions off by {off_by:.2g} x peak |u|')
+        assert off_by <= 1e-9
+    else:
+        assert files[0].read_bytes() == files[1].read_bytes()
 
 
 def test_an_underactuated_robot_replays_as_the_live_predictor_runs(tmp_path):

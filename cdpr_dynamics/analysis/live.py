@@ -15,6 +15,11 @@ offline replay and the live node give the same numbers by construction.
   than ``max(CLOSED_FORM_STEPS, dofs)`` steps is stepped in closed form
   (:class:`~cdpr_dynamics.dynamics.held_load.HeldLoadSteps`: the same state, at a cost that does
   not grow with the interval) where the model has at most ``held_load.MAX_DOFS`` DOFs.
+* :meth:`LivePredictor.advance_run` (the offline replay): many wrenches at once, the numbers
+  of :meth:`~LivePredictor.advance`; a run of at least n^2 / ``MODAL_RUN_PAYBACK`` steps of a
+  model with cable interiors steps in the model's modes (the same
+  :class:`~cdpr_dynamics.dynamics.held_load.HeldLoadSteps`, made once per model), to
+  round-off.
 * Slack (``slack='aware'``): after each linear step the cables' quasi-static tensions
   T_i + dT_i(q) are checked; where one would fall to zero or below, the step is taken again
   with the compression-free platform of :mod:`cdpr_dynamics.dynamics.slack` (the same
@@ -61,6 +66,7 @@ SLACK_MODES = ('aware', 'linear')
 SETTLE_S = 0.05             # every cable taut this long: back from the compression-free model
 CLOSED_FORM_STEPS = 100     # longer intervals (and longer than the DOFs) in closed form
 SLACK_MARGIN = 1e-9          # advance_run leaves to advance a tension this near to zero
+MODAL_RUN_PAYBACK = 200     # a run of n^2/200 steps pays for the modes of n DOFs (advance_run)
 
 
 @dataclass(frozen=True)
@@ -437,8 +443,10 @@ class LivePredictor:
         decreasing, rows of (m, 3) forces and moments), in one loop of the same Newmark
         steps: (k, their platform states (k, nd), :meth:`platform_state`'s q after each).
 
-        The same numbers bit for bit: the steps are the integrator's own, on the same load
-        vectors. The run stops (k < m) before a wrench that :meth:`advance` must take alone:
+        The same numbers: bit for bit where the steps are the integrator's own, on the same
+        load vectors; to round-off where a long run of a model with cable interiors steps in
+        its modes (:meth:`_run_steps`). The run stops (k < m) before a wrench that
+        :meth:`advance` must take alone:
         the first after a reset or a model change, one whose interval is stepped in closed
         form or capped (``max_steps_per_wrench``), and one in whose steps a cable goes slack
         or comes within :data:`SLACK_MARGIN` of it (``slack='aware'``; at its stamp for
@@ -463,16 +471,15 @@ class LivePredictor:
         loads[:, :3] = force_n[:count]
         if nd == 6:
             loads[:, 3:6] = moment_nm[:count]
-        sources = [held, *loads[:-1]]     # the load held over each wrench's interval
         start = integrator._state.copy()
-        taken = self._run_steps(sources, steps[:count])
+        taken = self._run_steps(held, loads, steps[:count])
         total = int(done_steps[count - 1]) if count else 0
         if total:                         # a cable slack, or too near it: take back
             bad = self._slack_in(taken, np.cumsum(steps[:count]))
             if bad < count:
                 integrator._state[:] = start
                 count, total = bad, int(done_steps[bad - 1]) if bad else 0
-                taken = self._run_steps(sources, steps[:count])
+                taken = self._run_steps(held, loads, steps[:count])
         if not count:
             return 0, np.empty((0, nd))
         history = np.concatenate([start[None, 0, :nd], taken[:, 0]])
@@ -480,7 +487,7 @@ class LivePredictor:
         if total:
             last = int(np.flatnonzero(steps[:count])[-1])      # the last wrench with steps
             if self.slack == 'aware':
-                self._last_step_load = sources[last][:nd].copy()
+                self._last_step_load = (held if last == 0 else loads[last - 1])[:nd].copy()
             self._slack_forces = None
         elif self.slack == 'aware':
             self._slack_forces = None
@@ -491,20 +498,58 @@ class LivePredictor:
         self.notice = ''
         return count, q
 
-    def _run_steps(self, sources: list, steps: np.ndarray) -> np.ndarray:
-        """``steps[k]`` linear steps under ``sources[k]`` each, in turn; the platform rows
-        (u, v) after every step (s, 2, nd)."""
+    def _run_steps(self, held: np.ndarray, loads: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """``steps[k]`` linear steps under the load held over the k-th wrench's interval
+        (``held``, then ``loads[k - 1]``: (n,) and (k, n) load vectors), in turn; the platform
+        rows (u, v) after every step (s, 2, nd). In the model's modes where that pays
+        (:meth:`_modal_for`: the same steps to round-off), else the integrator's own steps
+        (bit for bit)."""
         integrator = self.integrator
         nd = self.system.platform_dofs
+        count = len(steps)
+        total = int(steps.sum())
+        modal = self._modal_for(total) if count and not held[nd:].any() else None
+        if modal is not None:
+            platform = np.concatenate([held[None, :nd], loads[:count - 1, :nd]])
+            taken, after = modal.run(integrator._state, platform, steps, nd)
+            integrator._state[:] = after
+            return taken
         state, step = integrator._state, integrator.step
-        taken = np.empty((int(steps.sum()), 2, nd))
+        taken = np.empty((total, 2, nd))
         row = 0
-        for load, times in zip(sources, steps.tolist()):
+        for load, times in zip([held, *loads[:count - 1]], steps.tolist()):
             for _ in range(times):
                 step(load)
                 taken[row] = state[:2, :nd]
                 row += 1
         return taken
+
+    def _modal_for(self, steps: int) -> HeldLoadSteps | None:
+        """The model's modes (:meth:`_held_steps`) where a run of ``steps`` linear steps takes
+        them, or None: a model with cable interiors (a chain solve a step; a massless model's
+        step is a small product already) and a run that pays for the eigenproblem alone, at
+        least n^2 / ``MODAL_RUN_PAYBACK`` steps (later runs of the model reuse it). The choice
+        depends on the model and the run only, so a replay resumed from a checkpoint takes the
+        path the uninterrupted one took."""
+        n = self.integrator.u.shape[0]
+        if n == self.system.platform_dofs or steps * MODAL_RUN_PAYBACK < n * n:
+            return None
+        return self._held_steps()
+
+    def _held_steps(self) -> HeldLoadSteps | None:
+        """The model's :class:`HeldLoadSteps` (its modes), made on first use; None where it
+        has none: more than ``held_load.MAX_DOFS`` DOFs, matrices not finite, damping not
+        Rayleigh (then the integrator steps)."""
+        if self._held is None:
+            integrator = self.integrator
+            self._held = False
+            if integrator.u.shape[0] <= held_load.MAX_DOFS:
+                try:
+                    self._held = HeldLoadSteps(integrator.k, integrator.m, integrator.damping,
+                                               integrator.a)
+                except (DynamicsError, ValueError, np.linalg.LinAlgError):
+                    pass
+        return self._held or None
 
     def _slack_in(self, taken: np.ndarray, ends: np.ndarray) -> int:
         """The first wrench of a run whose steps (``taken``, ending at step ``ends[k]``) bring
@@ -571,7 +616,7 @@ class LivePredictor:
         self._tension_map = k_axial[:, None] * self._stretch_map            # dT/dq
         self._tension0 = row_norm(system.assembly.end_force_n)
         self._saved = np.empty_like(self.integrator._state)
-        self._held = None                   # HeldLoadSteps of this model, made on first use
+        self._held = None        # HeldLoadSteps of this model, made on first use (False: none)
         self._slack_stepper = None          # the compression-free model's, on first use
         self._interior = None               # interior_map of the model, on first use
         self._settle_steps = max(1, math.ceil(SETTLE_S / self.settings.dt_s - 1e-9))
@@ -682,14 +727,14 @@ class LivePredictor:
         if (steps <= max(CLOSED_FORM_STEPS, n) or n > held_load.MAX_DOFS
                 or self._stepper is not None):
             return False
-        if self._held is None:
-            self._held = HeldLoadSteps(integrator.k, integrator.m, integrator.damping,
-                                       integrator.a)
-        after = self._held.advance(integrator._state, load, steps)
+        modes = self._held_steps()
+        if modes is None:
+            return False
+        after = modes.advance(integrator._state, load, steps)
         nd = self.system.platform_dofs
         if self.slack == 'aware':
             dk = integrator.damping.stiffness_factor
-            ends = np.stack([after[0, :nd] + dk * after[1, :nd], self._held.static(load)[:nd]])
+            ends = np.stack([after[0, :nd] + dk * after[1, :nd], modes.static(load)[:nd]])
             if (self._tension0 + ends @ self._tension_map.T).min() <= 0.0:
                 return False
         integrator._state[:] = after
