@@ -27,6 +27,15 @@ def first_line(exc: BaseException) -> str:
     return clip(text.splitlines()[0], 2000) if text else type(exc).__name__
 
 
+def _late_by(stamp, other_ns: int | None, at_equal: bool) -> int | None:
+    """How far ``stamp`` lies behind the other input's last stamp ``other_ns`` where it came
+    out of stamp order with it (``at_equal``: equal stamps too), else None."""
+    if other_ns is None or stamp.jumped:
+        return None
+    behind = other_ns - stamp.ns
+    return behind if behind > 0 or (at_equal and behind == 0) else None
+
+
 class InputHandler:
     """Pose and wrench messages through the same checks and calls as ``dynamics_node``.
 
@@ -42,9 +51,11 @@ class InputHandler:
     sender's clock jumped back (the stream restarted at the new stamp), or the integrator
     skipped part of a long interval (``node.max_steps_per_wrench``). :attr:`last_wrench_ns`
     is the time the last wrench was taken at (its arrival time for an unstamped one).
-    After an accepted pose, :attr:`late_by_ns` is None, or (the pose came after a wrench stamped
-    at or after it, which was therefore predicted with the previous pose, unlike a replay in
-    stamp order) how far the pose's stamp lies behind the last wrench's (0 at equal stamps).
+    After an accepted pose or wrench, :attr:`late_by_ns` is None, or how far its stamp lies
+    behind the last one of the other input where it came out of stamp order with it: a pose
+    taken after a wrench stamped at or after it (0 at equal stamps; that wrench had the
+    previous pose), a wrench taken after a pose stamped after it (it has the newer pose). A
+    replay in stamp order gives those wrenches the other pose.
     """
 
     def __init__(self, predictor: LivePredictor, frame_id: str, quaternion_tolerance: float,
@@ -97,9 +108,7 @@ class InputHandler:
             raise InvalidMessage(f'{type(exc).__name__}: {clip(exc)}', 'internal') from None
         self.pose_clock.accept(stamp)
         self.notice = stamp.note
-        last = self.wrench_clock.last_ns
-        self.late_by_ns = (last - stamp.ns if last is not None and stamp.ns <= last
-                           and not stamp.jumped else None)
+        self.late_by_ns = _late_by(stamp, self.wrench_clock.last_ns, at_equal=True)
         return update
 
     def pose_still(self, stamp_ns: int, frame_id: str, values: tuple) -> bool:
@@ -137,6 +146,7 @@ class InputHandler:
         except Exception as exc:  # noqa: BLE001
             raise InvalidMessage(f'{type(exc).__name__}: {clip(exc)}', 'internal') from None
         self.wrench_clock.accept(stamp)
+        self.late_by_ns = _late_by(stamp, self.pose_clock.last_ns, at_equal=False)
         note, skipped = stamp.note, self.predictor.notice
         self.notice = f'{note}; {skipped}' if note and skipped else note or skipped
         return u

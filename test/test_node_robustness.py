@@ -162,9 +162,10 @@ def test_a_backlog_beyond_the_budget_is_left_waiting_in_order():
     assert order == [0, 1, 2, 3] and take_wrench().header.stamp.nanosec == 4
 
 
-def test_a_pose_taken_after_a_later_wrench_is_counted_late(settings):
+def test_inputs_taken_out_of_stamp_order_with_each_other_are_late(settings):
     # the topics are delivered apart: on a busy host a pose can reach the node after a wrench
-    # stamped at or after it, which was then predicted with the previous pose
+    # stamped at or after it, which was then predicted with the previous pose, and a wrench
+    # after a pose stamped after it
     handler = handler_for(settings)
     frame = settings.robot.frame_id
 
@@ -182,6 +183,13 @@ def test_a_pose_taken_after_a_later_wrench_is_counted_late(settings):
     assert pose(NOW_NS - S + 10_000_000) is None
     with pytest.raises(InvalidMessage):                   # a rejected pose leaves it as it was
         pose(NOW_NS - S + 4_000_000)
+    assert handler.late_by_ns is None
+    send(handler, NOW_NS - S + 10_000_000)                # at the pose's stamp: in order
+    assert handler.late_by_ns is None
+    pose(NOW_NS - S + 20_000_000)
+    send(handler, NOW_NS - S + 15_000_000)                # the pose at 20 ms came first
+    assert handler.late_by_ns == 5_000_000
+    send(handler, NOW_NS - S + 20_000_000)
     assert handler.late_by_ns is None
 
 

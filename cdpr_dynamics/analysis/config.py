@@ -137,6 +137,9 @@ NODE_PARAMETERS: tuple[Param, ...] = (
           'changes are published within 0.1 s', 0.1, 60.0),
     Param('node.wrench_queue_depth', 1000, 'depth of the best-effort wrench subscription: how '
           'many wrenches wait while the node is busy before the oldest are dropped', 1, 10000),
+    Param('node.pose_queue_depth', 50, 'depth of the best-effort pose subscription: how many '
+          'poses wait while the node is busy before the oldest are dropped (50: 1 s of a 50 Hz '
+          'pose stream, as the wrench queue holds 1 s of 1 kHz wrenches)', 1, 10000),
     Param('node.rebuild', 'inline', 'where a moved pose is solved: inline (before the next '
           'wrench, as cdpr_replay does) or worker (the tensions and sag-consistent statics in a '
           'process of their own while the old model keeps predicting, then a swap)',

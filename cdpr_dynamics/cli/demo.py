@@ -477,6 +477,7 @@ def run(args) -> dict:
             'prediction_ratio': predicted / max(sent['wrenches'], 1),
             'node_wrenches_accepted': status_count(wrench_status, 'accepted'),
             'node_wrenches_rejected': status_count(wrench_status, 'rejected'),
+            'node_wrenches_late': status_count(wrench_status, 'late'),
             'node_poses_accepted': status_count(pose_status, 'accepted'),
             'node_poses_rejected': status_count(pose_status, 'rejected'),
             'node_poses_late': status_count(pose_status, 'late'),

@@ -181,12 +181,16 @@ def controller_main(args) -> int:
     late = np.zeros(n_w)
     while sent_w < n_w:
         now = time.time_ns()
-        while sent_p < n_p and p_stamps[sent_p] <= now:
+        # what is due, in stamp order (a pose before the wrench of its stamp), also when this
+        # process runs behind: a pose published before older wrenches would reach the node
+        # first, and it would predict them with the pose stamped after them
+        while sent_p < n_p and p_stamps[sent_p] <= min(now, w_stamps[sent_w]):
             pose_pub.publish(pose_message(plan.position((p_stamps[sent_p] - t0_ns) * 1e-9),
                                           plan.quaternion, frame,
                                           ns_to_stamp(int(p_stamps[sent_p]))))
             sent_p += 1
-        while sent_w < n_w and w_stamps[sent_w] <= now:
+        while (sent_w < n_w and w_stamps[sent_w] <= now
+               and (sent_p == n_p or w_stamps[sent_w] < p_stamps[sent_p])):
             if first is None:
                 first = {'pose': pose_pub.get_subscription_count(),
                          'wrench': wrench_pub.get_subscription_count()}

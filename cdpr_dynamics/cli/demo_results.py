@@ -67,6 +67,13 @@ class TensionEstimate:
         return f'no cable slackens: lowest tension {low:.1f} N (cable {cable} at {at:.2f} s)'
 
 
+#: What a late pose or wrench (the node's ``late`` count) means, the most it lay behind as {}.
+LATE = {'poses': 'taken after a wrench stamped at or after it (up to {:.3g} ms; that wrench had '
+                 'the previous pose)',
+        'wrenches': 'taken after a pose stamped after it (up to {:.3g} ms; they had the newer '
+                    'pose)'}
+
+
 def input_sentence(what: str, sent: int, status: dict | None) -> str:
     """'N published, A accepted by the node, R rejected (kinds; last reason)', the poses the
     node took late and the inputs it never took, from the node's ``<what> input`` diagnostics."""
@@ -81,8 +88,7 @@ def input_sentence(what: str, sent: int, status: dict | None) -> str:
         text += f' ({kinds}; last: {values.get("last_rejection", "?")})'
     late = status_count(status, 'late')
     if late:
-        text += (f', {late} taken after a wrench stamped at or after it (up to '
-                 f'{float(values["late_max_ms"]):.3g} ms; that wrench had the previous pose)')
+        text += f', {late} {LATE[what]}'.format(float(values['late_max_ms']))
     lost = sent - (accepted or 0) - rejected
     if lost > 0:
         text += (f', {lost} not taken by the node (dropped from its queue while it was busy; '

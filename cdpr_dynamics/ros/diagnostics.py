@@ -33,10 +33,17 @@ class InputHealth:
         self._children = {}
         self.notes = collections.Counter()
         self.last_note = ''
+        self.late = 0                  # taken out of stamp order with the other input
+        self.late_max_ms = 0.0
 
-    def accept(self) -> bool:
-        """Count a good input; True when the level changed."""
+    def accept(self, late_by_ns: int | None = None) -> bool:
+        """Count a good input (``late_by_ns``: it came out of stamp order with the other
+        input by that much, :attr:`msg_adapters.inputs.InputHandler.late_by_ns`); True when the
+        level changed."""
         self.accepted += 1
+        if late_by_ns is not None:
+            self.late += 1
+            self.late_max_ms = max(self.late_max_ms, late_by_ns * 1e-6)
         changed = self.level != diag.OK
         self.level = diag.OK
         return changed
@@ -92,7 +99,8 @@ class InputHealth:
 
     def values(self) -> dict:
         age = time.monotonic() - self.last_reason_time if self.last_reason else None
-        values = {'accepted': self.accepted, 'rejected': sum(self.rejected.values())}
+        values = {'accepted': self.accepted, 'rejected': sum(self.rejected.values()),
+                  'late': self.late, 'late_max_ms': round(self.late_max_ms, 3)}
         values.update({f'rejected_{k}': v for k, v in sorted(self.rejected.items())})
         values['last_rejection'] = self.last_reason or 'none'
         if self.notes:

@@ -150,16 +150,14 @@ class DynamicsNode(Node):
         logger = self.get_logger()
         self.pose_health = InputHealth(logger.get_child('pose'), diag.ERROR)
         self.wrench_health = InputHealth(logger.get_child('wrench'), diag.WARN)
-        # poses taken after a wrench stamped at or after them (msg_adapters.inputs: late_by_ns)
-        self._late_poses = {'late': 0, 'late_max_ms': 0.0}
         self._update_modal()
         self._warm_up()
         self._check_budget()
 
-        sensor = QoSProfile(history=qos_profile_sensor_data.history,
-                            depth=self.flat['node.wrench_queue_depth'],
-                            reliability=qos_profile_sensor_data.reliability,
-                            durability=qos_profile_sensor_data.durability)
+        def sensor(depth):
+            return QoSProfile(history=qos_profile_sensor_data.history, depth=depth,
+                              reliability=qos_profile_sensor_data.reliability,
+                              durability=qos_profile_sensor_data.durability)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.displacement_pub = self.io.create_publisher(Vector3Stamped,
@@ -179,10 +177,10 @@ class DynamicsNode(Node):
         self._markers = None
         self._markers_stale = False
         self._markers_built = -np.inf
-        self.pose_sub = self.io.create_subscription(PoseStamped, 'pose', self.on_pose,
-                                                    qos_profile_sensor_data)
-        self.wrench_sub = self.io.create_subscription(WrenchStamped, 'wrench', self.on_wrench,
-                                                      sensor)
+        self.pose_sub = self.io.create_subscription(
+            PoseStamped, 'pose', self.on_pose, sensor(self.flat['node.pose_queue_depth']))
+        self.wrench_sub = self.io.create_subscription(
+            WrenchStamped, 'wrench', self.on_wrench, sensor(self.flat['node.wrench_queue_depth']))
         subs = (self.pose_sub, self.wrench_sub)
         self._input_takes = [functools.partial(take_next, sub) for sub in subs]
         self._input_handles = (self._handle_pose, self._handle_wrench)
@@ -330,14 +328,10 @@ class DynamicsNode(Node):
             self._reject(self.pose_health, exc.kind, str(exc))
             return
         self._pose_stamp = ns_to_stamp(self.inputs.last_pose_ns)
-        if self.pose_health.accept():
+        if self.pose_health.accept(self.inputs.late_by_ns):
             self.diag_dirty = True
         if self.inputs.notice:
             self.diag_dirty = self.pose_health.warn('clock', self.inputs.notice)
-        if self.inputs.late_by_ns is not None:
-            late = self._late_poses
-            late['late'] += 1
-            late['late_max_ms'] = max(late['late_max_ms'], self.inputs.late_by_ns * 1e-6)
         if update.rebuilt:
             self._rebuilt(update, self.inputs.last_pose_ns)
         if not background or not self._queue_pose(*self._held_pose):
@@ -417,7 +411,7 @@ class DynamicsNode(Node):
         self.displacement_pub.publish(self._displacement_msg)
         if self.pose_pub.get_subscription_count():    # serialising it for nobody costs
             self.pose_pub.publish(self._pose_msg)
-        if self.wrench_health.accept():
+        if self.wrench_health.accept(self.inputs.late_by_ns):
             self.diag_dirty = True
         if self.inputs.notice:
             self.diag_dirty = self.wrench_health.warn('time', self.inputs.notice)
@@ -669,8 +663,7 @@ class DynamicsNode(Node):
                  + self._shaping_skipped + self._budget_warnings
                  + self._name_warnings}
         return [diagnostics.model_status(name, hw, self.predictor, modal, extra),
-                diagnostics.input_status(name, 'pose input', self.pose_health,
-                                         self._late_poses, hw),
+                diagnostics.input_status(name, 'pose input', self.pose_health, {}, hw),
                 diagnostics.input_status(name, 'wrench input', self.wrench_health,
                                          self.timings.wrench_values(), hw),
                 self.frf.status(name, hw)]

@@ -28,7 +28,7 @@ IO_SUFFIX = '_io'         # the companion node of pose and wrench: '<name>_io', 
 #: Fixed for the life of the node: the robot itself and what is set up once.
 READ_ONLY = {'robot.frame_id', 'robot.anchors', 'robot.attachments', 'robot.initial_position',
              'robot.initial_orientation', 'node.diagnostics_period_s',
-             'node.wrench_queue_depth', 'node.service_introspection',
+             'node.wrench_queue_depth', 'node.pose_queue_depth', 'node.service_introspection',
              # limits protect the node: a client must not raise them at runtime
              'node.frf_max_points', 'node.frf_max_values', 'node.frf_queue_depth',
              'node.frf_cache_size', 'node.max_steps_per_wrench', 'node.rebuild',
