@@ -342,6 +342,35 @@ def test_a_run_of_wrenches_advances_as_each_wrench_alone(method, elements, slack
     assert np.array_equal(quaternion[-1], single.quaternion)
 
 
+@pytest.mark.parametrize('method, elements', [('spring', 1), ('fem', 4)])
+def test_linear_runs_go_on_through_a_long_slack_stretch(method, elements):
+    """slack='linear' keeps integrating the linear model while a cable is slack and counts
+    the slack time at each stamp: runs take the wrenches clearly slack too (a long push that
+    holds cables slack for 300 wrenches is a few runs, not a run stopped at every wrench) and
+    count as advance counts: the same slack time bit for bit and the same slack cables after
+    every call."""
+    settings = load_settings().replace(method=method, elements_per_cable=elements)
+    stamps, force, moment = _wrench_stream(900, 200.0, 0.0, 0, 450)
+    force[300:600, 2] = 1500.0                       # cables slack while it pushes
+    alone, run = LivePredictor(settings, slack='linear'), LivePredictor(settings, slack='linear')
+    slack_alone = []
+    for t, f, m in zip(stamps, force, moment):
+        alone.advance(int(t), f, m)
+        slack_alone.append((alone.slack_cables, alone.slack_time_s))
+    assert sum(1 for cables, _ in slack_alone if cables) > 250
+    start, calls = 0, 0
+    while start < stamps.size:
+        done, _ = run.advance_run(stamps[start:start + 100], force[start:start + 100],
+                                  moment[start:start + 100])
+        if not done:
+            run.advance(int(stamps[start]), force[start], moment[start])
+            done = 1
+        start += done
+        calls += 1
+        assert (run.slack_cables, run.slack_time_s) == slack_alone[start - 1]
+    assert calls < 40                                # 9 windows of 100 and a few stops
+
+
 @pytest.mark.parametrize('slack', ['aware', 'linear'])
 @pytest.mark.parametrize('config, amplitude_n, push_n', [('paper_cdpr.yaml', 200.0, 1500.0),
                                                          ('heavy_sag_6dof.yaml', 2.0, 100.0),

@@ -448,9 +448,11 @@ class LivePredictor:
         its modes (:meth:`_run_steps`). The run stops (k < m) before a wrench that
         :meth:`advance` must take alone:
         the first after a reset or a model change, one whose interval is stepped in closed
-        form or capped (``max_steps_per_wrench``), and one in whose steps a cable goes slack
-        or comes within :data:`SLACK_MARGIN` of it (``slack='aware'``; at its stamp for
-        ``'linear'``); the steps taken past it are taken back.
+        form or capped (``max_steps_per_wrench``), one in whose steps a cable goes slack or
+        comes within :data:`SLACK_MARGIN` of it (``slack='aware'``), and one at whose stamp
+        it is not clear whether a cable is slack (``'linear'``: a cable within the margin; the
+        wrenches clearly slack are counted as :meth:`advance` counts them); the steps taken
+        past it are taken back.
         """
         integrator = self.integrator
         nd = self.system.platform_dofs
@@ -474,8 +476,9 @@ class LivePredictor:
         start = integrator._state.copy()
         taken = self._run_steps(held, loads, steps[:count])
         total = int(done_steps[count - 1]) if count else 0
+        slack = np.zeros(count, dtype=bool)
         if total:                         # a cable slack, or too near it: take back
-            bad = self._slack_in(taken, np.cumsum(steps[:count]))
+            bad, slack = self._slack_in(taken, np.cumsum(steps[:count]))
             if bad < count:
                 integrator._state[:] = start
                 count, total = bad, int(done_steps[bad - 1]) if bad else 0
@@ -488,7 +491,12 @@ class LivePredictor:
             last = int(np.flatnonzero(steps[:count])[-1])      # the last wrench with steps
             if self.slack == 'aware':
                 self._last_step_load = (held if last == 0 else loads[last - 1])[:nd].copy()
-            self._slack_forces = None
+                self._slack_forces = None
+            else:                         # advance's count, wrench by wrench (its sum order)
+                dt_s = self.settings.dt_s
+                for times in steps[:count][slack[:count]].tolist():
+                    self.slack_time_s += times * dt_s
+                self._slack_forces = self.cable_force_n() if slack[last] else None
         elif self.slack == 'aware':
             self._slack_forces = None
         self._t_ns = int(stamps_ns[count - 1])
@@ -551,24 +559,31 @@ class LivePredictor:
                     pass
         return self._held or None
 
-    def _slack_in(self, taken: np.ndarray, ends: np.ndarray) -> int:
-        """The first wrench of a run whose steps (``taken``, ending at step ``ends[k]``) bring
-        a cable within :data:`SLACK_MARGIN` of slack, the check :meth:`_step` makes after
-        each step (``slack='aware'``) or at the wrench's stamp (``'linear'``); the number of
-        wrenches if none does."""
+    def _slack_in(self, taken: np.ndarray, ends: np.ndarray) -> tuple[int, np.ndarray]:
+        """The check :meth:`_step` makes of a run's steps (``taken``, wrench k's ending at step
+        ``ends[k]``), with a margin: (the first wrench that :meth:`advance` must take alone,
+        or the number of wrenches; (k,) whether each wrench ends slack).
+
+        ``slack='aware'`` checks after each step: a cable within :data:`SLACK_MARGIN` of slack
+        stops the run (the compression-free model takes over), so no wrench of it ends slack.
+        ``'linear'`` checks at each stamp whether the lowest tension is <= 0 (slack: counted):
+        only where that is not clear by the margin (every cable above it, or one below minus
+        it) does the run stop, so a long slack stretch is one run."""
         dk = self.integrator.damping.stiffness_factor
-        if self.slack == 'linear':
-            at = np.unique(ends[ends > 0]) - 1
-            taken = taken[at]
-        else:
-            at = np.arange(len(taken))
-        x = taken[:, 0] + dk * taken[:, 1]
+        slack = np.zeros(len(ends), dtype=bool)
+        stepped = np.diff(ends, prepend=0) > 0           # the wrenches with steps
+        at = ends[stepped] - 1 if self.slack == 'linear' else np.arange(len(taken))
+        x = taken[at, 0] + dk * taken[at, 1]
         tension = self._tension0 + x @ self._tension_map.T
         bound = SLACK_MARGIN * (np.abs(self._tension0) + np.abs(x) @ np.abs(self._tension_map).T)
-        near = ~(tension > bound).all(axis=1)
-        if not near.any():
-            return len(ends)
-        return int(np.searchsorted(ends, at[int(near.argmax())] + 1))
+        clear = (tension > bound).all(axis=1)
+        if self.slack == 'linear':
+            below = (tension < -bound).any(axis=1)
+            slack[stepped] = below
+            clear |= below
+        if clear.all():
+            return len(ends), slack
+        return int(np.searchsorted(ends, at[int(clear.argmin())] + 1)), slack
 
     # ----------------------------------------------------------------------------- slack
 
