@@ -23,6 +23,8 @@ a run without ``--resume`` names and removes it (as it does the leftover of a ki
 """
 from __future__ import annotations
 
+from cdpr_dynamics.cli import blas_threads  # noqa: F401  (before numpy: one BLAS thread)
+
 import argparse
 import os
 import signal
