@@ -51,11 +51,12 @@ class InputHandler:
     sender's clock jumped back (the stream restarted at the new stamp), or the integrator
     skipped part of a long interval (``node.max_steps_per_wrench``). :attr:`last_wrench_ns`
     is the time the last wrench was taken at (its arrival time for an unstamped one).
-    After an accepted pose or wrench, :attr:`late_by_ns` is None, or how far its stamp lies
-    behind the last one of the other input where it came out of stamp order with it: a pose
-    taken after a wrench stamped at or after it (0 at equal stamps; that wrench had the
-    previous pose), a wrench taken after a pose stamped after it (it has the newer pose). A
-    replay in stamp order gives those wrenches the other pose.
+    After an accepted pose or wrench (one at a time: :meth:`wrench_run` leaves it as it was),
+    :attr:`late_by_ns` is None, or how far its stamp lies behind the last one of the other
+    input where it came out of stamp order with it: a pose taken after a wrench stamped at or
+    after it (0 at equal stamps; that wrench had the previous pose), a wrench taken after a
+    pose stamped after it (it has the newer pose). A replay in stamp order gives those
+    wrenches the other pose.
     """
 
     def __init__(self, predictor: LivePredictor, frame_id: str, quaternion_tolerance: float,
