@@ -75,8 +75,9 @@ LATE = {'poses': 'taken after a wrench stamped at or after it (up to {:.3g} ms; 
 
 
 def input_sentence(what: str, sent: int, status: dict | None) -> str:
-    """'N published, A accepted by the node, R rejected (kinds; last reason)', the poses the
-    node took late and the inputs it never took, from the node's ``<what> input`` diagnostics."""
+    """'N published, A accepted by the node, R rejected (kinds; last reason)', those it took
+    out of stamp order with the other input and those it never took, from the node's
+    ``<what> input`` diagnostics."""
     if status is None:
         return f'{what}: {sent} published; the node reported no counts'
     values = status['values']
