@@ -34,6 +34,7 @@ from cdpr_dynamics.recording.recovery import recover_recording
 from cdpr_dynamics.recording.writer import ChunkedFile, FIRST_CHUNK_BYTES
 from msg_adapters import mcap_schema
 from conftest import wait_until
+from processes import counts_so_far, finish, Processes
 
 PYTHON = sys.executable
 N_PER_TOPIC = 20
@@ -170,20 +171,8 @@ elif mode in ('steady', 'flood'):
 # ----------------------------------------------------------------------------- helpers
 
 
-class Processes:
-    """Subprocesses of one test, logged to its output folder, all stopped at the end."""
-
-    def __init__(self, env: dict, folder: Path):
-        self.env, self.folder, self.procs = env, folder, []
-
-    def start(self, name: str, args: list, stdin=None, **popen) -> subprocess.Popen:
-        out = open(self.folder / f'{name}.out', 'w')
-        err = open(self.folder / f'{name}.err', 'w')
-        proc = subprocess.Popen(args, env=self.env, stdout=out, stderr=err, stdin=stdin,
-                                cwd=self.folder, start_new_session=True, **popen)
-        proc.log_names = (self.folder / f'{name}.out', self.folder / f'{name}.err')
-        self.procs.append(proc)
-        return proc
+class RecordingProcesses(Processes):
+    """The recorder and the fake node of these tests."""
 
     def recorder(self, path: Path, *extra, **popen) -> subprocess.Popen:
         return self.start('cdpr_record', [PYTHON, '-m', 'cdpr_dynamics.cli.record',
@@ -192,45 +181,14 @@ class Processes:
     def publisher(self, *args) -> subprocess.Popen:
         script = self.folder / 'fake_cdpr.py'
         script.write_text(PUBLISHER)
-        return self.start('publisher', [PYTHON, str(script), *map(str, args)],
-                          stdin=subprocess.PIPE)
-
-    def stop_all(self):
-        for proc in self.procs:
-            if proc.poll() is None:
-                if proc.stdin:
-                    proc.stdin.close()
-                try:
-                    proc.wait(timeout=5)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait(timeout=5)
+        return self.start('publisher', [PYTHON, str(script), *args], stdin=subprocess.PIPE)
 
 
 @pytest.fixture
 def procs(ros_env, output_dir):
-    p = Processes(ros_env, output_dir)
+    p = RecordingProcesses(ros_env, output_dir)
     yield p
     p.stop_all()
-
-
-def counts_so_far(path: Path) -> dict:
-    """Messages per topic in a file being written (what its closed chunks hold)."""
-    if not path.exists():
-        return {}
-    try:
-        return {k: t.message_count for k, t in recording_info(path).topics.items()}
-    except RecordingError:
-        return {}
-
-
-def finish(proc: subprocess.Popen, sig, timeout: float = 20.0) -> str:
-    proc.send_signal(sig)
-    proc.wait(timeout=timeout)
-    out, err = (p.read_text() for p in proc.log_names)
-    assert proc.returncode == 0, f'recorder exited {proc.returncode}: {err}'
-    assert 'Traceback' not in err, err
-    return out
 
 
 def expected_fields(topic: str, i: int) -> dict:
@@ -690,7 +648,7 @@ def test_full_disk_leaves_a_finished_file(procs, output_dir, small_disk):
     recorder = procs.recorder(path, '--topics', 'pose')
     procs.publisher('flood', output_dir / 'flood.json', 0, 30.0)
     recorder.wait(timeout=60)          # it stops by itself when the disk is full
-    err = recorder.log_names[1].read_text()
+    err = recorder.logs[1].read_text()
     assert recorder.returncode == 1, err
     n = write_failure_checks(path, err, 'No space left on device')
     free = shutil.disk_usage(small_disk).free
@@ -758,7 +716,7 @@ def test_file_size_limit_leaves_a_finished_file(procs, output_dir):
         resource.RLIMIT_FSIZE, (limit, limit)))
     procs.publisher('flood', output_dir / 'flood.json', 0, 30.0)
     recorder.wait(timeout=60)
-    err = recorder.log_names[1].read_text()
+    err = recorder.logs[1].read_text()
     assert recorder.returncode == 1, err
     n = write_failure_checks(path, err, 'File too large')
     print(f'\nfile-size limit {limit} bytes: kept {n} PoseStamped in {path.stat().st_size} '

@@ -54,6 +54,7 @@ from msg_adapters.pose import pose_message
 from msg_adapters.validation import stamp_to_ns
 from msg_adapters.wrench import wrench_message
 from conftest import installed, wait_until
+from processes import counts_so_far, finish, Processes
 
 PYTHON = sys.executable
 REPO = Path(__file__).resolve().parents[1]
@@ -779,32 +780,6 @@ def test_bytes_of_another_type_are_refused_or_skipped(tmp_path, ros_env):
 # ----------------------------------------------------------------------------- live
 
 
-class Processes:
-    """Subprocesses of one test, logged to its output folder, all stopped at the end."""
-
-    def __init__(self, env: dict, folder: Path):
-        self.env, self.folder, self.procs = env, folder, []
-
-    def start(self, name: str, args: list) -> subprocess.Popen:
-        out = open(self.folder / f'{name}.out', 'w')
-        err = open(self.folder / f'{name}.err', 'w')
-        proc = subprocess.Popen([str(a) for a in args], env=self.env, stdout=out, stderr=err,
-                                cwd=self.folder, start_new_session=True)
-        proc.logs = (self.folder / f'{name}.out', self.folder / f'{name}.err')
-        self.procs.append(proc)
-        return proc
-
-    def stop_all(self):
-        for proc in self.procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait(timeout=5)
-
-
 @pytest.fixture
 def procs(ros_env, output_dir):
     """Processes on a domain id reserved through node_process's lock files, which cdpr_demo
@@ -815,25 +790,6 @@ def procs(ros_env, output_dir):
         p = Processes(env, output_dir)
         yield p
         p.stop_all()
-
-
-def counts_so_far(path: Path) -> dict:
-    if not path.exists():
-        return {}
-    try:
-        return {k: t.message_count for k, t in recording_info(path).topics.items()}
-    except RecordingError:
-        return {}
-
-
-def finish(proc: subprocess.Popen, timeout: float = 30.0) -> str:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    proc.wait(timeout=timeout)
-    out, err = (p.read_text() for p in proc.logs)
-    assert proc.returncode == 0, f'{proc.args[:3]} exited {proc.returncode}: {err}'
-    assert 'Traceback' not in err, err
-    return out
 
 
 def test_live_replay_keeps_the_recorded_timing(procs, output_dir):
