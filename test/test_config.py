@@ -499,6 +499,17 @@ def alive(pid: int) -> bool:
         return False
 
 
+def described(pid: int) -> str:
+    """``PID NAME: COMMAND LINE`` of a running process (which child outlived an interrupt)."""
+    try:
+        name = Path(f'/proc/{pid}/comm').read_text().strip()
+        command = Path(f'/proc/{pid}/cmdline').read_bytes().replace(b'\0', b' ').decode(
+            errors='replace').strip()
+    except OSError:
+        return f'{pid} (gone)'
+    return f'{pid} {name}: {command}'
+
+
 def children(pid: int) -> list[str]:
     """Child processes of ``pid`` (cdpr_bench --dds: its dynamics_node is up)."""
     try:
@@ -530,7 +541,11 @@ def test_ctrl_c_ends_a_busy_tool_with_one_line(ros_env, tmp_path, tool, args, bu
     assert run.stderr.strip().splitlines() == [f'{tool}: interrupted'], run.stderr[-3000:]
     # nothing left running: the children it had at the interrupt are stopped too
     try:
-        wait_until(lambda: not any(alive(k) for k in kids), 15, f'{tool} children to stop')
+        try:
+            wait_until(lambda: not any(alive(k) for k in kids), 15, f'{tool} children to stop')
+        except AssertionError as timed_out:
+            left = [described(k) for k in kids if alive(k)]
+            raise AssertionError(f'{timed_out}; still running: {left}') from None
     finally:
         for k in kids:
             if alive(k):

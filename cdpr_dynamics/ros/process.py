@@ -138,18 +138,35 @@ _STARTED: list = []      # children started by start_child, for stop_started
 def start_child(command, **popen_kwargs) -> subprocess.Popen:
     """``subprocess.Popen(command, start_new_session=True, **popen_kwargs)``, kept for
     :func:`stop_started`. A child in a session of its own does not get a terminal's Ctrl-C:
-    its parent must stop it. SIGINT is held back (in the main thread) until the child is
-    recorded, so a Ctrl-C during the start cannot leave it running unrecorded."""
-    main = threading.current_thread() is threading.main_thread()
-    if main:
-        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    its parent must stop it. A SIGINT during the start (in the main thread) is held back until
+    the child is recorded, so it cannot leave it running unrecorded; then it is handled as it
+    would have been. It is held back by a handler, not by blocking the signal: a blocked
+    signal mask is inherited across exec, and a child started with SIGINT blocked would ignore
+    :func:`stop_process`'s SIGINT (it then waits for its SIGTERM)."""
+    held = []
+    previous = None     # None: not held back (another thread, or a handler not set from Python)
+    if (threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is not None):
+        previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(frame))
     try:
         proc = subprocess.Popen(command, start_new_session=True, **popen_kwargs)
         _STARTED[:] = [p for p in _STARTED if p.poll() is None] + [proc]
     finally:
-        if main:
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+            if held:
+                _deliver_sigint(previous, held[0])
     return proc
+
+
+def _deliver_sigint(handler, frame) -> None:
+    """Handle a SIGINT held back by :func:`start_child` as ``handler`` (what
+    :func:`signal.signal` returned) would have."""
+    if callable(handler):
+        handler(signal.SIGINT, frame)
+    elif handler == signal.SIG_DFL:
+        os.kill(os.getpid(), signal.SIGINT)
+    # SIG_IGN: nothing to do
 
 
 def stop_started(timeout_s: float = 10.0) -> None:
