@@ -404,3 +404,25 @@ def test_auto_never_picks_a_model_estimated_worse_than_another_within_the_budget
     assert len(within) >= 5
     assert choice.estimated_error == pytest.approx(min(within), rel=1e-12)
     assert choice.method == 'fem_sag' and choice.dofs <= max_dofs
+
+
+@pytest.mark.parametrize('f_max_hz', [10.0, 40.0])
+@pytest.mark.parametrize('max_dofs', [174, 366, 600])
+def test_auto_on_heavy_sag_over_a_wide_band_takes_fem_sag_not_spring(f_max_hz,
+                                                                     max_dofs):
+    """The CoGiRo-sized heavy-sag robot with the package's defaults for the band (40 Hz) and
+    the FRF force (unit, z), or a 10 Hz band: hundreds of cable modes in the band, no model
+    within the budget resolves them all. spring misses every one and its FRF is estimated
+    374 % (10 Hz) and 1200 % (40 Hz) off; ``auto`` takes the fem_sag within the budget whose
+    estimate is the smallest of every candidate's, never spring."""
+    from cdpr_dynamics.analysis.config import load_settings
+    settings = load_settings(Path(__file__).parent / 'data' / 'cogiro_heavy_sag.yaml')
+    settings = settings.replace(f_max_hz=f_max_hz, frf_force_n=np.array([0.0, 0.0, 1.0]),
+                                max_dofs=max_dofs)
+    choice = choose_model(settings, equilibrium(settings))
+    assert not choice.meets_tolerance
+    within = {(method, n): error for method, n, error in choice.considered
+              if model_dofs(n if method in ('fem', 'fem_sag') else 1, 8, 6) <= max_dofs}
+    assert choice.method == 'fem_sag' and choice.dofs <= max_dofs
+    assert choice.estimated_error == pytest.approx(min(within.values()), rel=1e-12)
+    assert within[('spring', 1)] > 1.25 * choice.estimated_error
