@@ -70,7 +70,7 @@ def test_slack_rate_accounts_for_every_wrench_of_the_demo_load(ros_env):
     from cdpr_dynamics.cli.bench_node import slack_rate
     row = slack_rate(str(default_config_path()), 1000.0, 1.0, {'model.method': 'spring'})
     assert row['slack'] == 'aware' and row['method'] == 'spring' and row['force_n'] == 1500.0
-    assert row['sent'] == 1000 and row['predicted'] > 0
+    assert row['sent'] == 1000 and row['predicted'] > 0, json.dumps(row)
     assert row['predicted'] + row['rejected'] + row['lost'] == row['sent'] and row['lost'] >= 0
     assert 0.0 < row['slack_time_s'] <= 1.0
 
