@@ -28,14 +28,13 @@ class Processes:
         return proc
 
     def stop_all(self):
-        """End what still runs: a process fed on stdin by closing it, any other by SIGINT;
-        killed (its whole session) if it has not ended within 10 s."""
+        """End what still runs by SIGINT (its stdin closed, if it is fed on it); killed (its
+        whole session) if it has not ended within 10 s."""
         for proc in self.procs:
             if proc.poll() is None:
                 if proc.stdin:
                     proc.stdin.close()
-                else:
-                    proc.send_signal(signal.SIGINT)
+                proc.send_signal(signal.SIGINT)
                 try:
                     proc.wait(timeout=10)
                 except subprocess.TimeoutExpired:
