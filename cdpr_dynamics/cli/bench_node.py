@@ -568,26 +568,45 @@ def recording_throughput(config, rate_hz: float = 5000.0, duration_s: float = 3.
 
 
 def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world',
-          subscribers: int = 1, force_n: float = 1000.0) -> dict:
+          subscribers: int = 1, force_n: float = 1000.0, node_match: bool = False) -> dict:
     """Publish wrenches at ``rate_hz`` for ``duration_s`` (``force_n`` along z at 5 Hz);
     stamps start at ``start_s``, once ``subscribers`` subscriptions (the node, and e.g. a
-    recorder) have matched."""
+    recorder) have matched and, with ``node_match``, once dynamics_node's /diagnostics say
+    its wrench subscription has matched a publisher (the match is made on each side apart: a
+    best-effort message sent before the node's side has matched is lost)."""
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import WrenchStamped
     from rclpy.node import Node
     from rclpy.qos import qos_profile_sensor_data
 
+    from msg_adapters.diagnostics import read_statuses
     from msg_adapters.validation import s_to_stamp
     from msg_adapters.wrench import wrench_message
 
     rclpy.init()
     node = Node('cdpr_flood')
     pub = node.create_publisher(WrenchStamped, 'wrench', qos_profile_sensor_data)
-    deadline = time.monotonic() + 10.0
-    while pub.get_subscription_count() < subscribers and time.monotonic() < deadline:
+    node_matched = [not node_match]
+
+    def on_diagnostics(msg):
+        status = read_statuses(msg).get('cdpr_dynamics: wrench input')
+        if status is not None and int(status['values'].get('publishers', 0)) > 0:
+            node_matched[0] = True
+
+    if node_match:
+        node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
+
+    def ready() -> bool:
+        return pub.get_subscription_count() >= subscribers and node_matched[0]
+
+    deadline = time.monotonic() + 30.0
+    while not ready() and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
-    if pub.get_subscription_count() < subscribers:
-        raise SystemExit(f'flood: fewer than {subscribers} subscribers on wrench after 10 s')
+    if not ready():
+        raise SystemExit(f'flood: {pub.get_subscription_count()} of {subscribers} subscribers '
+                         f'on wrench after 30 s' + ('' if node_matched[0] else
+                                                     ', dynamics_node matched none'))
     msg = wrench_message([0.0, 0.0, 0.0], frame_id=frame)
     period = 1.0 / rate_hz
     total = int(round(rate_hz * duration_s))
@@ -812,7 +831,7 @@ def slack_rate(config, rate_hz: float = 1000.0, duration_s: float = 10.0,
     path, sent = _beside_node_and_recorder(
         'slack', config, parameters,
         ['flood', '--rate', str(rate_hz), '--duration', str(duration_s), '--frame',
-         settings.robot.frame_id, '--subscribers', '2', '--force-n',
+         settings.robot.frame_id, '--subscribers', '2', '--node-match', '--force-n',
          str(float(settings.frf_force_n[2]))], duration_s + 90)
     recorded = {name.lstrip('/'): t.message_count
                 for name, t in recording_info(path).topics.items()}
@@ -875,6 +894,8 @@ def main(argv=None) -> int:
     fl.add_argument('--frame', default='world')
     fl.add_argument('--subscribers', type=int, default=1)
     fl.add_argument('--force-n', type=float, default=1000.0)
+    fl.add_argument('--node-match', action='store_true',
+                    help="also wait for dynamics_node's wrench subscription to match")
     co = sub.add_parser('controller', help='publish wrenches and moving poses at rates')
     co.add_argument('--config', required=True)
     co.add_argument('--wrench-hz', type=float, default=1000.0)
@@ -891,7 +912,7 @@ def main(argv=None) -> int:
                                     args.subscribers)))
         return 0
     print(json.dumps(flood(args.rate, args.duration, args.start_s, args.frame,
-                           args.subscribers, args.force_n)))
+                           args.subscribers, args.force_n, args.node_match)))
     return 0
 
 

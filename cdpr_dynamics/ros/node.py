@@ -663,9 +663,12 @@ class DynamicsNode(Node):
                  + self._shaping_skipped + self._budget_warnings
                  + self._name_warnings}
         return [diagnostics.model_status(name, hw, self.predictor, modal, extra),
-                diagnostics.input_status(name, 'pose input', self.pose_health, {}, hw),
+                diagnostics.input_status(name, 'pose input', self.pose_health,
+                                         {'publishers': self.pose_sub.get_publisher_count()},
+                                         hw),
                 diagnostics.input_status(name, 'wrench input', self.wrench_health,
-                                         self.timings.wrench_values(), hw),
+                                         {'publishers': self.wrench_sub.get_publisher_count(),
+                                          **self.timings.wrench_values()}, hw),
                 self.frf.status(name, hw)]
 
     def _slack_values(self) -> dict:
