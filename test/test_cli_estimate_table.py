@@ -4,14 +4,15 @@ Robots: the paper's (config/paper_cdpr.yaml, 0-40 Hz), the low-tension one
 (config/low_tension_cdpr.yaml, lambda^2 up to 334, 0-10 Hz), a taut 6-DOF one
 (test/data/rigid_cdpr.yaml, 0-40 Hz) and a heavy-sag 6-DOF one (test/data/sagging_6dof.yaml,
 lambda^2 ~500-3000, 2 % modal damping, 0-5 Hz), a CoGiRo-sized one in heavy sag
-(test/data/cogiro_heavy_sag.yaml, 0-2 Hz; test/data/cogiro_heavy_sag_4hz.yaml, the same over
-0-4 Hz, where fem_sag n = 8 misses cable modes), the paper robot over pulleys with winch-side cable
+(test/data/cogiro_heavy_sag.yaml, 0-2 Hz, and the same over 0-3 Hz and 0-4 Hz, where fem_sag
+n = 8 misses cable modes), the paper robot over pulleys with winch-side cable
 (config/paper_pulleys.yaml, 0-40 Hz) and two suspended underactuated ones
 (config/suspended_3cable.yaml with pulleys and an offset centre of mass,
 config/suspended_4cable.yaml); models spring, fem 4/8/16, catenary_exact, fem_sag 4/8/16.
 Measured against the reference of cdpr_dynamics.selection.reference (Richardson fem_sag). The
 committed table the docs show (doc/estimates/table.json) is this one.
 """
+import dataclasses
 import math
 from pathlib import Path
 
@@ -19,7 +20,7 @@ import pytest
 
 from cdpr_dynamics.cli import estimate_table
 from cdpr_dynamics.analysis.pipeline import equilibrium
-from cdpr_dynamics.analysis.config import load_settings
+from cdpr_dynamics.analysis.config import ConfigError, load_settings
 from cdpr_dynamics.selection.reference import measure_error, reference_solution
 from cdpr_dynamics.selection.auto import SAFETY, choose_model
 
@@ -31,17 +32,17 @@ MASSLESS = ('spring', 'catenary', 'catenary_exact')
 def solved():
     """Per robot of the table: its settings, equilibrium and reference solution."""
     out = {}
-    for path in estimate_table.ROBOTS:
-        settings = load_settings(ROOT / path)
+    for entry in estimate_table.ROBOTS:
+        name, settings = estimate_table.robot_settings(entry, ROOT)
         eq = equilibrium(settings)
-        out[path] = settings, eq, reference_solution(settings, eq)
+        out[name] = settings, eq, reference_solution(settings, eq)
     return out
 
 
 @pytest.fixture(scope='module')
 def table(solved):
-    return {Path(p).stem: estimate_table.robot_entries(Path(p).stem, s, eq=eq, reference=ref)
-            for p, (s, eq, ref) in solved.items()}
+    return {name: estimate_table.robot_entries(name, s, eq=eq, reference=ref)
+            for name, (s, eq, ref) in solved.items()}
 
 
 @pytest.mark.slow
@@ -98,12 +99,13 @@ def test_the_estimates_are_not_capped(table):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('path', estimate_table.ROBOTS)
-def test_auto_within_the_default_budget(table, solved, path):
+@pytest.mark.parametrize('entry', estimate_table.ROBOTS)
+def test_auto_within_the_default_budget(table, solved, entry):
     """auto's pick (model.tolerance 1 %, model.max_dofs 600) measures within the tolerance
     where it says it does; where it says nothing within the budget does (heavy sag), it is
     not massless and measures better than every model of the table within the budget."""
-    settings, eq, reference = solved[path]
+    name = estimate_table.robot_settings(entry, ROOT)[0]
+    settings, eq, reference = solved[name]
     choice = choose_model(settings, eq, damping=reference.damping)
     assert choice.dofs <= settings.max_dofs
     measured = measure_error(settings, eq, choice.method, choice.elements_per_cable, reference)
@@ -112,10 +114,11 @@ def test_auto_within_the_default_budget(table, solved, path):
         assert measured.error < settings.tolerance, (choice.reason, measured)
         assert choice.warnings == ()
         return
-    assert Path(path).stem in ('sagging_6dof', 'cogiro_heavy_sag', 'cogiro_heavy_sag_4hz')
+    assert name in ('sagging_6dof', 'cogiro_heavy_sag', 'cogiro_heavy_sag_3hz',
+                    'cogiro_heavy_sag_4hz')
     assert choice.method not in MASSLESS and choice.warnings
     assert 'fem_sag n=25 (582 DOFs) is the most accurate within it' in choice.reason
-    for e in table[Path(path).stem]:
+    for e in table[name]:
         assert measured.error <= max(e.measured_freq_error, e.measured_frf_error)
 
 
@@ -139,3 +142,19 @@ def test_ratio_of_an_entry():
     assert entry.ratio == pytest.approx(1.1)
     assert estimate_table.Entry('r', 'fem', 4, 75, 0.0, 0.0, 1e-7, 0.0, 1e-6).ratio == 0.0
     assert math.isinf(estimate_table.Entry('r', 'fem', 4, 75, 0.0, 0.0, 1e-3, 0.0, 1e-6).ratio)
+
+
+def test_a_robot_of_the_table_over_a_band_of_its_own():
+    """PATH@F: the config over [0, F Hz], named STEM_Fhz; a band ending below the sweep's
+    start, or not a frequency, is refused; a PATH without a band keeps its own."""
+    name, settings = estimate_table.robot_settings('test/data/cogiro_heavy_sag.yaml@3', ROOT)
+    own = load_settings(ROOT / 'test/data/cogiro_heavy_sag.yaml')
+    assert name == 'cogiro_heavy_sag_3hz' and settings.f_max_hz == 3.0 != own.f_max_hz
+    assert settings.frequencies_hz[-1] == 3.0
+    assert repr(dataclasses.replace(settings, f_max_hz=own.f_max_hz)) == repr(own)
+    assert estimate_table.robot_settings('test/data/cogiro_heavy_sag.yaml', ROOT)[0] == \
+        'cogiro_heavy_sag'
+    with pytest.raises(ConfigError, match=r'exceeds frf.f_max_hz = 0.5'):
+        estimate_table.robot_settings('config/paper_cdpr.yaml@0.5', ROOT)
+    with pytest.raises(ConfigError, match=r'positive frequency'):
+        estimate_table.robot_settings('config/paper_cdpr.yaml@nan', ROOT)

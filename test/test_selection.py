@@ -18,6 +18,7 @@ paper  10 Hz: 10 % spring (0.93 % FRF), 1 % catenary (0.24 %), 0.1 % fem_sag 4 (
 paper  40 Hz: 10 % fem 5 (7.4/6.7 %), 1 % fem_sag 15 (0.73 %), 0.1 % fem_sag 46 (0.078 %)
 paper 100 Hz: 10 % fem 15 (7.4/6.0 %), 1 % fem_sag 44 (0.77 %), 0.1 % fem_sag 137 (0.079 %)
 """
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -32,7 +33,8 @@ from cdpr_dynamics.dynamics.system import Damping
 from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.models.base import CableSet
 from cdpr_dynamics.selection.closed_forms import (dispersion_error, irvine_symmetric_ratio,
-                                                  largest_phase, scene, true_end_stiffness)
+                                                  largest_phase, scene, true_end_stiffness,
+                                                  wave_tension)
 from cdpr_dynamics.selection.estimates import MISSED, Estimator, percent
 from cdpr_dynamics.selection.reference import measure_error, reference_solution
 from cdpr_dynamics.selection.auto import (SAFETY, ModelChoice, SelectionError, accuracy_warnings,
@@ -136,7 +138,7 @@ def test_irvine_first_symmetric_mode():
 
 @pytest.mark.parametrize('robot, tolerance', [('paper', 2e-5), ('low_tension', 4e-3)])
 def test_closed_form_sagged_cable_matches_converged_fem_sag(robot, tolerance):
-    """Irvine's shallow inclined cable (with the chord-normal coupling, mean tension)
+    """Irvine's shallow inclined cable (with the chord-normal coupling, the wave tension)
     against fem_sag n = 256: 1e-5 (paper) and 0.30 % (lambda^2 = 334) in the end stiffness."""
     settings = ROBOTS[robot]()
     eq = equilibrium(settings)
@@ -149,9 +151,45 @@ def test_closed_form_sagged_cable_matches_converged_fem_sag(robot, tolerance):
     # the static limit is Ernst's modulus: axial (EA + T)/L / (1 + lambda^2/12)
     sc = scene(eq.cables, 40.0)
     axial = np.einsum('ci,cij,cj->c', eq.cables.unit, truth[0].real, eq.cables.unit)
-    lam2 = sc.sag_parameter * (eq.cables.tension_n / sc.mean_tension_n) ** 3
+    lam2 = sc.sag_parameter * (eq.cables.tension_n / sc.wave_tension_n) ** 3
     ernst = (eq.cables.ea_n + eq.cables.tension_n) / eq.cables.length_m / (1 + lam2 / 12)
     np.testing.assert_allclose(axial, ernst, rtol=1e-3)
+
+
+def test_wave_tension_is_the_transit_time_of_the_hanging_cable():
+    """T_w = mu (L / t)^2, t = integral of sqrt(mu / T) along the cable: against a trapezoid
+    rule of 200 000 steps on the catenaries of the CoGiRo-sized heavy-sag robot (cables
+    hanging through a low point of tension), the closed form of a vertical cable (T linear in
+    s: t = 2 sqrt(mu) (sqrt(T_A) - sqrt(T_B)) / gamma), of chord statics (T linear in height)
+    and of a weightless cable (T_w = T)."""
+    from cdpr_dynamics.analysis.config import load_settings
+    from cdpr_dynamics.mechanics.statics import equilibrium_for
+    from cdpr_dynamics.models import catenary
+    settings = load_settings(Path(__file__).parent / 'data' / 'cogiro_heavy_sag.yaml')
+    cables = equilibrium_for(settings, equilibrium(settings), 'fem_sag').cables
+    state, mu = cables.sag_state, cables.mass_per_length_kg_m
+    up, gamma = catenary.up_and_weight(cables)
+    s = np.linspace(0.0, 1.0, 200_001)[None, :] * state.unstrained_length_m[:, None]
+    tension = np.linalg.norm(state.force_n[:, None, :] - gamma * s[..., None] * up, axis=2)
+    transit = np.trapezoid(np.sqrt(mu / tension), s, axis=1)
+    assert np.any(state.min_tension_n < np.minimum(cables.tension_n, state.anchor_tension_n))
+    np.testing.assert_allclose(wave_tension(cables), mu * (cables.length_m / transit) ** 2,
+                               rtol=1e-7)
+    vertical = CableSet(np.array([[0.0, 0.0, 9.0]]), np.array([40.0]), 1e6, 3.87,
+                        np.array([0.0, 0.0, -9.81]))
+    vertical = dataclasses.replace(vertical, sag_state=catenary.solve(vertical))
+    assert vertical.sag_state.valid.all()
+    top = 40.0 + 3.87 * vertical.sag_state.unstrained_length_m
+    transit = 2.0 * np.sqrt(vertical.mass_per_length_kg_m) * (np.sqrt(top) - np.sqrt(40.0)) / 3.87
+    np.testing.assert_allclose(wave_tension(vertical),
+                               vertical.mass_per_length_kg_m * (9.0 / transit) ** 2, rtol=1e-9)
+    chord = dataclasses.replace(cables, sag_state=None)
+    anchor = chord.tension_n + gamma * (chord.chord_m @ up)
+    np.testing.assert_allclose(wave_tension(chord),
+                               ((np.sqrt(anchor) + np.sqrt(chord.tension_n)) / 2) ** 2,
+                               rtol=1e-12)
+    weightless = dataclasses.replace(chord, weight_per_length_n_per_m=0.0)
+    np.testing.assert_array_equal(wave_tension(weightless), weightless.tension_n)
 
 
 def test_sag_parameters_of_the_robots():

@@ -1,8 +1,9 @@
 """``auto``'s estimates against the measured errors: the table that sets ``selection.SAFETY``.
 
-    cdpr_estimate_table [CONFIG ...] [--json PATH]
+    cdpr_estimate_table [CONFIG[@F_MAX_HZ] ...] [--json PATH]
 
-For each robot (default :data:`ROBOTS`) and each model of :data:`MODELS`: the estimated
+For each robot (default :data:`ROBOTS`; ``CONFIG@F`` is the robot over [0, F Hz], its
+``frf.f_max_hz`` set to F) and each model of :data:`MODELS`: the estimated
 (:class:`~cdpr_dynamics.selection.estimates.Estimator`) and the measured
 (:func:`~cdpr_dynamics.selection.reference.measure_error`) errors of the natural frequencies in
 the band
@@ -24,7 +25,7 @@ from pathlib import Path
 
 from cdpr_dynamics.analysis.pipeline import AnalysisError, equilibrium
 from cdpr_dynamics.cli import interruptible, plain
-from cdpr_dynamics.analysis.config import ConfigError, load_settings
+from cdpr_dynamics.analysis.config import ConfigError, Settings, load_settings
 from cdpr_dynamics.dynamics.system import DynamicsError
 from cdpr_dynamics.selection.estimates import Estimator
 from cdpr_dynamics.selection.reference import measure_error, reference_solution
@@ -33,7 +34,7 @@ from cdpr_dynamics.selection.auto import SAFETY, SelectionError
 ROOT = Path(__file__).resolve().parents[2]
 ROBOTS = ('config/paper_cdpr.yaml', 'config/low_tension_cdpr.yaml', 'test/data/rigid_cdpr.yaml',
           'test/data/sagging_6dof.yaml', 'test/data/cogiro_heavy_sag.yaml',
-          'test/data/cogiro_heavy_sag_4hz.yaml',
+          'test/data/cogiro_heavy_sag.yaml@3', 'test/data/cogiro_heavy_sag.yaml@4',
           'config/paper_pulleys.yaml', 'config/suspended_3cable.yaml',
           'config/suspended_4cable.yaml')
 TABLE = ROOT / 'doc' / 'estimates' / 'table.json'   # the committed table of ROBOTS x MODELS
@@ -62,6 +63,24 @@ class Entry:
         pairs = ((self.measured_freq_error, self.estimated_freq_error),
                  (self.measured_frf_error, self.estimated_frf_error))
         return max((m / e if e > 0 else math.inf) if m > self.floor else 0.0 for m, e in pairs)
+
+
+def robot_settings(entry: str, root: Path | None = None) -> tuple[str, Settings]:
+    """(name, settings) of a robot of the table: ``PATH`` (named by its stem) or ``PATH@F``,
+    the robot over [0, F Hz] (``frf.f_max_hz`` F; named ``STEM_Fhz``); a relative PATH from
+    ``root`` where given."""
+    path, at, band = entry.rpartition('@')
+    try:
+        f_max_hz = float(band) if at else None
+    except ValueError:
+        path, f_max_hz = entry, None
+    path = Path(path if at and f_max_hz is not None else entry)
+    settings = load_settings(root / path if root is not None else path)
+    if f_max_hz is None:
+        return path.stem, settings
+    if not (math.isfinite(f_max_hz) and f_max_hz > 0):
+        raise ConfigError(f'{entry}: the band must end at a positive frequency (Hz)')
+    return f'{path.stem}_{f_max_hz:g}hz', settings.replace(f_max_hz=f_max_hz)
 
 
 def robot_entries(robot: str, settings, models=MODELS, eq=None,
@@ -112,14 +131,17 @@ def read_json(path=TABLE) -> list[Entry]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='cdpr_estimate_table',
                                      description=plain(__doc__.split('\n')[0]))
-    parser.add_argument('configs', nargs='*', help='robots (default: the ROBOTS of the table)')
+    parser.add_argument('configs', nargs='*', metavar='CONFIG[@F_MAX_HZ]',
+                        help='robots, each over [0, F_MAX_HZ] where given (default: the '
+                        'ROBOTS of the table)')
     parser.add_argument('--json', metavar='PATH', help='also write the entries as JSON (the '
                         f'docs\' table: {TABLE.relative_to(ROOT)})')
     args = parser.parse_args(argv)
     entries = []
     try:
-        for path in args.configs or [str(ROOT / p) for p in ROBOTS]:
-            entries += robot_entries(Path(path).stem, load_settings(path))
+        for name, settings in (robot_settings(entry) for entry in args.configs) if args.configs \
+                else (robot_settings(entry, ROOT) for entry in ROBOTS):
+            entries += robot_entries(name, settings)
     except (ConfigError, AnalysisError, SelectionError, DynamicsError) as exc:
         print(f'estimate_table: error: {str(exc).splitlines()[0]}', file=sys.stderr)
         return 1

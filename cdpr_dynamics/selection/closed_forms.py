@@ -1,12 +1,14 @@
 """Closed forms behind ``auto``'s error estimates: per-cable scales, continuous cables, chains.
 
-* :func:`scene`: what decides which model a scene needs, per cable (Irvine's lambda^2, mean
-  tension, first transverse and axial modes, the sag direction);
+* :func:`scene`: what decides which model a scene needs, per cable (Irvine's lambda^2, the
+  wave tension, first transverse and axial modes, the sag direction);
+* :func:`wave_tension`: the uniform tension of a string with the cable's transit time of
+  transverse waves along its catenary (where its string modes lie);
 * :func:`dispersion_error`: a consistent-mass FEM chain of n elements on the j-th fixed-fixed
   string mode, sqrt(6(1 - cos t)/(2 + cos t))/t - 1 at t = j pi / n;
 * :func:`irvine_symmetric_ratio`: Irvine's first symmetric in-plane mode of a sagged cable;
 * :func:`true_end_stiffness`: the closed-form sag-aware dynamic end stiffness of a continuous
-  shallow inclined cable (Irvine, Cable Structures, 1981, ch. 3) at its mean tension, i.e.
+  shallow inclined cable (Irvine, Cable Structures, 1981, ch. 3) at its :func:`wave_tension`, i.e.
   the exact straight-cable dynamic stiffness of ``dsm`` with Irvine's dynamic sag compliance
   in series with the axial one and its coupling to the in-plane normal direction. Its axial
   stiffness is Ernst's (EA + T)/L / (1 + lambda^2/12) statically and vanishes at Irvine's
@@ -26,7 +28,7 @@ import numpy as np
 
 from cdpr_dynamics import models
 from cdpr_dynamics.models.base import CableSet, anchor_series, axial_transverse
-from cdpr_dynamics.models.catenary import sag_parameter
+from cdpr_dynamics.models.catenary import sag_parameter, up_and_weight
 from cdpr_dynamics.models.dsm import z_cot_z
 
 
@@ -84,6 +86,46 @@ def _sag_compliance(w2: np.ndarray) -> np.ndarray:
     return np.where(small, 1.0 / 12.0 + w2 / 120.0, direct)
 
 
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(24)
+
+
+def wave_tension(cables: CableSet) -> np.ndarray:
+    """(n,) the uniform tension T_w whose taut string over the chord L has the cable's transit
+    time of transverse waves, t = integral of sqrt(mu / T(s)) ds along it: T_w = mu (L / t)^2.
+
+    The string modes of a cable whose tension varies along it lie near j / (2 t) (WKB), not
+    at the end tension's. Along the elastic catenary of sag-consistent statics
+    (``cables.sag_state``) the tension is |F_B - gamma s up| at the unstrained arc length s from the platform end
+    (F_B the force on the cable there): with H its part normal to up and x = F_B . up -
+    gamma s, t = sqrt(mu)/gamma * integral of (H^2 + x^2)^(-1/4) dx, taken as sqrt(mu H)/gamma
+    * integral of sqrt(cosh u) du over x = H sinh u (smooth where a heavily sagged cable hangs
+    through a low point of tension H). Without a valid catenary (chord statics), the tension
+    varies linearly with height along the chord: t = 2 L sqrt(mu) / (sqrt(T_A) + sqrt(T_B)).
+    """
+    tension = np.asarray(cables.tension_n, dtype=float)
+    up, gamma = up_and_weight(cables)
+    if gamma == 0.0:
+        return tension
+    length = cables.length_m
+    anchor = tension + gamma * (np.asarray(cables.chord_m) @ up)   # T_A = T_B - gamma rise
+    with np.errstate(invalid='ignore'):
+        out = (0.5 * (np.sqrt(np.maximum(anchor, 0.0)) + np.sqrt(tension))) ** 2
+    state = cables.sag_state
+    if state is None:
+        return out
+    force = np.asarray(state.force_n, dtype=float)
+    vertical = force @ up
+    horizontal = np.maximum(np.linalg.norm(force - vertical[:, None] * up, axis=1),
+                            1e-12 * tension)
+    top = np.arcsinh(vertical / horizontal)
+    bottom = np.arcsinh((vertical - gamma * state.unstrained_length_m) / horizontal)
+    u = 0.5 * (top + bottom)[:, None] + 0.5 * (top - bottom)[:, None] * _NODES
+    integral = 0.5 * (top - bottom) * (np.sqrt(np.cosh(u)) @ _WEIGHTS)
+    transit = np.sqrt(cables.mass_per_length_kg_m * horizontal) / gamma * integral
+    wave = cables.mass_per_length_kg_m * (length / transit) ** 2
+    return np.where(np.asarray(state.valid) & np.isfinite(wave), wave, out)
+
+
 # --------------------------------------------------------------------------- the scene
 
 @dataclass(frozen=True, eq=False)
@@ -93,8 +135,8 @@ class Scene:
     cables: CableSet
     f_max_hz: float
     sag_parameter: np.ndarray          # Irvine's lambda^2
-    mean_tension_n: np.ndarray         # tension at mid-height along the cable
-    transverse_hz: np.ndarray          # first fixed-fixed transverse mode sqrt(T/mu)/(2L)
+    wave_tension_n: np.ndarray         # :func:`wave_tension`: the string of the same transit time
+    transverse_hz: np.ndarray          # first fixed-fixed transverse mode sqrt(T_w/mu)/(2L)
     axial_hz: np.ndarray               # first fixed-fixed axial mode sqrt(EA/mu)/(2L)
     symmetric_shift: np.ndarray        # Irvine's first symmetric in-plane mode / pi - 1
     tension_shift: np.ndarray          # gamma |dz| / (4 T): straight models' transverse error
@@ -136,13 +178,13 @@ def scene(cables: CableSet, f_max_hz: float) -> Scene:
         i = int(np.argmin(lowest))
         raise SelectionError(f'cable {i} cannot hold its own weight: {tension[i]:.3g} N at the '
                              f'platform, {gamma * rise[i]:.3g} N of cable below it')
-    mean = tension - 0.5 * gamma * rise
+    wave = wave_tension(cables)
     lam2 = sag_parameter(cables)
     unit = cables.unit
     normal = -up[None, :] + (unit @ up)[:, None] * unit
     normal_norm = np.linalg.norm(normal, axis=1)
     direction = normal / np.where(normal_norm > 0, normal_norm, 1.0)[:, None]
-    return Scene(cables, float(f_max_hz), lam2, mean, np.sqrt(tension / mu) / (2.0 * length),
+    return Scene(cables, float(f_max_hz), lam2, wave, np.sqrt(wave / mu) / (2.0 * length),
                  np.sqrt(cables.ea_n / mu) / (2.0 * length), irvine_symmetric_ratio(lam2) - 1.0,
                  gamma * np.abs(rise) / (4.0 * tension),
                  direction, gamma * normal_norm)
@@ -168,7 +210,7 @@ def true_end_stiffness(sc: Scene, lam, sag_scale: float = 1.0,
 
     Shallow inclined cables (Irvine 1981, ch. 3) in the frame e_x (anchor -> platform end
     along the chord), e_y (gravity's part normal to the chord, the sag direction): with the
-    mean tension T, a = gamma cos(theta) L / T, w^2 = lam mu L^2 / T, s = (tan(w/2)/(w/2) - 1),
+    wave tension T (:func:`wave_tension`), a = gamma cos(theta) L / T, w^2 = lam mu L^2 / T, s = (tan(w/2)/(w/2) - 1),
     and the axial compliance D = (L/(EA + T)) (1/(z_a cot z_a) + lambda^2 s/w^2), an additional
     tension h = (U + c V)/D with c = a s / 2 gives
 
@@ -182,7 +224,7 @@ def true_end_stiffness(sc: Scene, lam, sag_scale: float = 1.0,
     """
     c = sc.cables
     lam = np.asarray(lam, dtype=complex).reshape(-1, 1)
-    length, mu, tension = c.length_m, c.mass_per_length_kg_m, sc.mean_tension_n
+    length, mu, tension = c.length_m, c.mass_per_length_kg_m, sc.wave_tension_n
     axial_wave = z_cot_z(lam * (mu * length ** 2 / c.ea_n))
     w2 = lam * (mu * length ** 2 / tension)
     w2_sag = w2 if elements is None else w2 / chain_frequency_ratio_squared(w2 / elements ** 2)
