@@ -216,6 +216,7 @@ class _Client:
 
     def __init__(self, node, service: str):
         self.client = node.create_client(GetParameters, service, qos_profile=reply_qos())
+        self.matched = False      # wait_for_service: this client's endpoints matched a server's
         self.ready = False
 
 
@@ -285,7 +286,8 @@ def wait_for_frequency_response(node, timeout_s: float = 10.0, service: str = SE
     if entry.ready:
         return True
     deadline = time.monotonic() + timeout_s
-    if not entry.client.wait_for_service(timeout_sec=timeout_s):
+    entry.matched = entry.matched or entry.client.wait_for_service(timeout_sec=timeout_s)
+    if not entry.matched:
         return False
     ping = _call(node, entry.client, GetParameters.Request(names=[]), deadline, PING_FIRST_S,
                  spin)
@@ -308,7 +310,10 @@ def call_frequency_response(node, names=None, overrides: dict | None = None,
     """
     deadline = time.monotonic() + timeout_s
     if not wait_for_frequency_response(node, timeout_s, service, spin):
-        raise FrequencyResponseError(f'service {service} not available after {timeout_s:g} s')
+        raise FrequencyResponseError(
+            f'service {service} not available after {timeout_s:g} s: '
+            + ('it matched this client but answered no empty request'
+               if _client(node, service).matched else 'no server matched this client'))
     request = request_message(names, overrides)
     future = _call(node, _client(node, service).client, request, deadline, CALL_FIRST_S,
                    spin)

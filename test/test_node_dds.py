@@ -536,6 +536,9 @@ def test_frequency_response_overrides_and_reasons(paper):
             assert 'amplitude_z_m' in got or 'amplitude_z_m' in reasons
     with pytest.raises(FrequencyResponseError, match="unknown array 'nope'"):
         paper.frf(['nope'])
+    with pytest.raises(FrequencyResponseError,
+                       match=r'no_frf not available after 0.5 s: no server matched'):
+        call_frequency_response(paper.node, timeout_s=0.5, service='no_frf', spin=False)
     assert paper.alive()
     paper.frf(['amplitude_z_m'])
     paper.expect_status('frequency_response', OK, 'calls')

@@ -404,6 +404,8 @@ def run(args) -> dict:
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
+    from msg_adapters.frf_service import frequency_response_client
+
     env, reservation = _environment()
     log_path = Path(env['ROS_LOG_DIR']) / 'dynamics_node.log'
     log = open(log_path, 'w')
@@ -422,6 +424,7 @@ def run(args) -> dict:
     try:
         node = Node('cdpr_demo', start_parameter_services=False)   # a smaller wait set
         nodes.append(node)
+        frequency_response_client(node)   # discovered while the demo runs, not after it
         poll_node = Node('cdpr_demo_listener', start_parameter_services=False)   # not spun
         nodes.append(poll_node)
         executor.add_node(node)
