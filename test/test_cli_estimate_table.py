@@ -4,8 +4,8 @@ Robots: the paper's (config/paper_cdpr.yaml, 0-40 Hz), the low-tension one
 (config/low_tension_cdpr.yaml, lambda^2 up to 334, 0-10 Hz), a taut 6-DOF one
 (test/data/rigid_cdpr.yaml, 0-40 Hz) and a heavy-sag 6-DOF one (test/data/sagging_6dof.yaml,
 lambda^2 ~500-3000, 2 % modal damping, 0-5 Hz), a CoGiRo-sized one in heavy sag
-(test/data/cogiro_heavy_sag.yaml, 0-2 Hz, and the same over 0-3 Hz and 0-4 Hz, where fem_sag
-n = 8 misses cable modes), the paper robot over pulleys with winch-side cable
+(test/data/cogiro_heavy_sag.yaml, 0-2 Hz, and the same over 0-3, 0-4 and 0-10 Hz, where
+fem_sag n = 8 and 16 miss cable modes), the paper robot over pulleys with winch-side cable
 (config/paper_pulleys.yaml, 0-40 Hz) and two suspended underactuated ones
 (config/suspended_3cable.yaml with pulleys and an offset centre of mass,
 config/suspended_4cable.yaml); models spring, fem 4/8/16, catenary_exact, fem_sag 4/8/16.
@@ -55,6 +55,18 @@ def test_every_measured_error_is_within_safety_times_its_estimate(table):
     worst = max(e.ratio for e in entries)
     # SAFETY is the table's largest ratio with a margin, not a blanket factor
     assert 1.0 <= worst <= SAFETY <= 1.5 * worst, worst
+
+
+@pytest.mark.slow
+def test_fem_sag_is_not_estimated_several_times_its_measured_frf_error(table):
+    """The other side of SAFETY: fem_sag's FRF error is not overstated (a sag-aware model
+    estimated several times worse than it is loses auto's choice to a worse one), on every
+    robot and band, those where its chains miss cable modes included (heavy sag, 0-10 Hz)."""
+    rows = [e for entries in table.values() for e in entries if e.method == 'fem_sag'
+            and e.measured_frf_error > e.floor]
+    assert len(rows) >= 20
+    for e in rows:
+        assert e.estimated_frf_error <= 1.3 * e.measured_frf_error, e
 
 
 @pytest.mark.slow
@@ -114,8 +126,7 @@ def test_auto_within_the_default_budget(table, solved, entry):
         assert measured.error < settings.tolerance, (choice.reason, measured)
         assert choice.warnings == ()
         return
-    assert name in ('sagging_6dof', 'cogiro_heavy_sag', 'cogiro_heavy_sag_3hz',
-                    'cogiro_heavy_sag_4hz')
+    assert name.startswith('cogiro_heavy_sag') or name == 'sagging_6dof'
     assert choice.method not in MASSLESS and choice.warnings
     assert 'fem_sag n=25 (582 DOFs) is the most accurate within it' in choice.reason
     for e in table[name]:

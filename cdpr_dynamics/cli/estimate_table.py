@@ -35,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[2]
 ROBOTS = ('config/paper_cdpr.yaml', 'config/low_tension_cdpr.yaml', 'test/data/rigid_cdpr.yaml',
           'test/data/sagging_6dof.yaml', 'test/data/cogiro_heavy_sag.yaml',
           'test/data/cogiro_heavy_sag.yaml@3', 'test/data/cogiro_heavy_sag.yaml@4',
+          'test/data/cogiro_heavy_sag.yaml@10',
           'config/paper_pulleys.yaml', 'config/suspended_3cable.yaml',
           'config/suspended_4cable.yaml')
 TABLE = ROOT / 'doc' / 'estimates' / 'table.json'   # the committed table of ROBOTS x MODELS
