@@ -5,7 +5,8 @@ The node runs in two threads: the main thread takes pose and wrench alone
 (:class:`~cdpr_dynamics.ros.rclpy_compat.InputLoop`), a services thread runs an executor for
 parameters, ``frequency_response``, the worker's answers and the diagnostics timer. SIGINT and
 SIGTERM end the process with status 0 within ``STOP_DEADLINE_S`` (:class:`Stopper`); a bad
-configuration exits 1 with one line.
+configuration exits 1 with one line (within ``FAILURE_DEADLINE_S`` once it runs: time to leave
+the ROS graph cleanly).
 
 Children (``cdpr_demo``, the benchmark, the DDS tests) get a ROS domain id of their own
 (reserved with a lock file so parallel runs on one machine do not share a domain),
@@ -30,6 +31,9 @@ from pathlib import Path
 
 LOCK_DIR = Path(tempfile.gettempdir()) / 'cdpr_dynamics_domains'
 STOP_DEADLINE_S = 0.8     # after SIGINT/SIGTERM the process ends within this, cleanly or not
+FAILURE_DEADLINE_S = 5.0  # ... after an error of its own (nobody waits on it): time to leave
+#                           the graph cleanly, as peers otherwise list it until its DDS lease
+#                           runs out (20 s)
 SWITCH_INTERVAL_S = 0.0005   # the GIL changes hands at least this often (Python's default,
 #                              5 ms, would let the services thread hold a wrench that long)
 
@@ -318,7 +322,7 @@ def _run(stopper, argv) -> int:
         if failed and (stopper.failed or not stopper.signalled):
             print(f'dynamics_node: error: {first_line(failed[0])}', file=sys.stderr)
             status = 1
-        stopper.stopping(status)
+        stopper.stopping(status, FAILURE_DEADLINE_S if status else STOP_DEADLINE_S)
         try:
             services.shutdown(timeout_sec=0.2)
             if thread is not None:
@@ -382,10 +386,11 @@ class Stopper:
     def signalled(self) -> bool:
         return bool(self._signal)
 
-    def stopping(self, status: int = 0) -> None:
+    def stopping(self, status: int = 0, deadline_s: float = STOP_DEADLINE_S) -> None:
         """The shutdown is under way: every later signal is ignored, and the watchdog ends the
-        process with ``status`` if the shutdown takes longer than ``STOP_DEADLINE_S``."""
+        process with ``status`` if the shutdown takes longer than ``deadline_s``."""
         self._status = status
+        self._deadline_s = deadline_s
         if self._signal is None:
             self._signal = 0
         try:
@@ -406,6 +411,7 @@ class Stopper:
         os._exit(status)
 
     _status = 0
+    _deadline_s = STOP_DEADLINE_S
     failed = False      # stopping because the services thread failed (status 1)
 
     def _watchdog(self):
@@ -413,7 +419,7 @@ class Stopper:
             self._read.recv(1)
         except OSError:
             return
-        if not self._finished.wait(STOP_DEADLINE_S):
+        if not self._finished.wait(self._deadline_s):
             self.exit(self._status)
 
 
