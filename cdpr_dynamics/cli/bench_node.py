@@ -31,6 +31,7 @@ import numpy as np
 from cdpr_dynamics.analysis.config import load_settings
 
 FRF_CALL_POINTS = 20000     # the large call of the wrench-path-during-a-call figure
+QUIET_S = 5.0               # a wrench count unchanged this long in the node's reports: settled
 
 
 def _percentiles(seconds) -> dict:
@@ -720,7 +721,8 @@ def _beside_node_and_recorder(tag: str, config, parameters, child_args: list,
         sent = json.loads(out.stdout.strip().splitlines()[-1])
         sent['cpu_percent'] = {key: round(100 * (after[key] - before[key]) / elapsed, 1)
                                for key in before if key in after}
-        _wait_for_quiet_counts(path, time.time_ns(), 30.0)
+        _wait_for_quiet_counts(path, time.time_ns(), sent.get('sent', sent.get('wrench', 0)),
+                               60.0)
     finally:
         if recorder is not None:
             stop_process(recorder)
@@ -742,25 +744,32 @@ def _cpu_seconds(node, recorder) -> dict:
     return seconds
 
 
-def _wait_for_quiet_counts(path: Path, after_ns: int, timeout_s: float) -> bool:
-    """Until the recording being written at ``path`` holds two node diagnostics logged after
-    ``after_ns`` with the same wrench count (the node has taken its queue), or the time is
-    up; read as far as its whole chunks go (a chunk is closed at least every second)."""
+def _wait_for_quiet_counts(path: Path, after_ns: int, sent: int, timeout_s: float) -> bool:
+    """Until the node's diagnostics in the recording being written at ``path`` (logged after
+    ``after_ns``) account for all ``sent`` wrenches (accepted or rejected), or have kept one
+    count over QUIET_S (the rest is lost), or the time is up; read as far as its whole chunks
+    go (a chunk is closed at least every second). A node starved of CPU can keep one count
+    over two reports a second apart and still hold its queue."""
     from cdpr_dynamics.recording.reader import read_messages
     from msg_adapters.diagnostics import read_statuses
 
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        counts = []
+        counts = []                       # (log time, accepted + rejected)
         try:
             for record in read_messages(path, ['/diagnostics'], allow_incomplete=True):
                 if record.log_time_ns > after_ns:
                     status = read_statuses(record.message).get('cdpr_dynamics: wrench input')
                     if status is not None:
-                        counts.append(status['values'].get('accepted'))
+                        values = status['values']
+                        counts.append((record.log_time_ns, int(values.get('accepted', 0))
+                                       + int(values.get('rejected', 0))))
         except Exception:  # noqa: BLE001 - the file is being written: read again
             counts = []
-        if len(counts) >= 2 and counts[-1] == counts[-2]:
+        if counts and counts[-1][1] >= sent:
+            return True
+        same = [t for t, count in counts if counts and count == counts[-1][1]]
+        if same and (same[-1] - same[0]) * 1e-9 >= QUIET_S:
             return True
         time.sleep(0.2)       # the polling period of the file, not a synchronisation
     return False
