@@ -605,9 +605,9 @@ def flood(rate_hz: float, duration_s: float, start_s: float, frame: str = 'world
     while not ready() and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
     if not ready():
+        unmatched = '' if node_matched[0] else ', dynamics_node matched none'
         raise SystemExit(f'flood: {pub.get_subscription_count()} of {subscribers} subscribers '
-                         f'on wrench after 30 s' + ('' if node_matched[0] else
-                                                     ', dynamics_node matched none'))
+                         f'on wrench after 30 s{unmatched}')
     msg = wrench_message([0.0, 0.0, 0.0], frame_id=frame)
     period = 1.0 / rate_hz
     total = int(round(rate_hz * duration_s))

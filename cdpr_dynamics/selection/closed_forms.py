@@ -95,12 +95,13 @@ def wave_tension(cables: CableSet) -> np.ndarray:
 
     The string modes of a cable whose tension varies along it lie near j / (2 t) (WKB), not
     at the end tension's. Along the elastic catenary of sag-consistent statics
-    (``cables.sag_state``) the tension is |F_B - gamma s up| at the unstrained arc length s from the platform end
-    (F_B the force on the cable there): with H its part normal to up and x = F_B . up -
-    gamma s, t = sqrt(mu)/gamma * integral of (H^2 + x^2)^(-1/4) dx, taken as sqrt(mu H)/gamma
-    * integral of sqrt(cosh u) du over x = H sinh u (smooth where a heavily sagged cable hangs
-    through a low point of tension H). Without a valid catenary (chord statics), the tension
-    varies linearly with height along the chord: t = 2 L sqrt(mu) / (sqrt(T_A) + sqrt(T_B)).
+    (``cables.sag_state``) the tension is |F_B - gamma s up| at the unstrained arc length s
+    from the platform end (F_B the force on the cable there): with H its part normal to up
+    and x = F_B . up - gamma s, t = sqrt(mu)/gamma * integral of (H^2 + x^2)^(-1/4) dx,
+    taken as sqrt(mu H)/gamma * integral of sqrt(cosh u) du over x = H sinh u (smooth where a
+    heavily sagged cable hangs through a low point of tension H). Without a valid catenary
+    (chord statics), the tension varies linearly with height along the chord:
+    t = 2 L sqrt(mu) / (sqrt(T_A) + sqrt(T_B)).
     """
     tension = np.asarray(cables.tension_n, dtype=float)
     up, gamma = up_and_weight(cables)
@@ -210,9 +211,9 @@ def true_end_stiffness(sc: Scene, lam, sag_scale: float = 1.0,
 
     Shallow inclined cables (Irvine 1981, ch. 3) in the frame e_x (anchor -> platform end
     along the chord), e_y (gravity's part normal to the chord, the sag direction): with the
-    wave tension T (:func:`wave_tension`), a = gamma cos(theta) L / T, w^2 = lam mu L^2 / T, s = (tan(w/2)/(w/2) - 1),
-    and the axial compliance D = (L/(EA + T)) (1/(z_a cot z_a) + lambda^2 s/w^2), an additional
-    tension h = (U + c V)/D with c = a s / 2 gives
+    wave tension T (:func:`wave_tension`), a = gamma cos(theta) L / T, w^2 = lam mu L^2 / T,
+    s = (tan(w/2)/(w/2) - 1), and the axial compliance D = (L/(EA + T)) (1/(z_a cot z_a) +
+    lambda^2 s/w^2), an additional tension h = (U + c V)/D with c = a s / 2 gives
 
         K_xx = 1/D,   K_xy = c/D,   K_yy = (T/L) w cot w + c^2/D,   K_zz = (T/L) w cot w.
 
