@@ -194,7 +194,7 @@ class Estimator:
         """n0 of fem_sag's own error measurement (:meth:`sag_error`): SAG_ELEMENTS, doubled
         (up to SAG_ELEMENTS_MAX) until the chain of n0 elements resolves every cable mode in
         the band. Where the band holds modes the chains of n0 and 2 n0 miss, their difference
-        has poles the cables do not (over 0-10 Hz on the CoGiRo-sized robot, 29 modes per
+        has poles the cables do not (over 0-10 Hz on the CoGiRo-sized robot, 28 modes per
         cable and direction, n0 = 8 estimated fem_sag n = 8 at 256 % and n = 16 at 34 %,
         measured 120 % and 47 %)."""
         sc = self.scene
