@@ -766,11 +766,11 @@ def _wait_for_quiet_counts(path: Path, after_ns: int, sent: int, timeout_s: floa
                                        + int(values.get('rejected', 0))))
         except Exception:  # noqa: BLE001 - the file is being written: read again
             counts = []
-        if counts and counts[-1][1] >= sent:
-            return True
-        same = [t for t, count in counts if counts and count == counts[-1][1]]
-        if same and (same[-1] - same[0]) * 1e-9 >= QUIET_S:
-            return True
+        if counts:
+            last = counts[-1][1]
+            same = [t for t, count in counts if count == last]
+            if last >= sent or (same[-1] - same[0]) * 1e-9 >= QUIET_S:
+                return True
         time.sleep(0.2)       # the polling period of the file, not a synchronisation
     return False
 

@@ -70,12 +70,12 @@ def robot_settings(entry: str, root: Path | None = None) -> tuple[str, Settings]
     """(name, settings) of a robot of the table: ``PATH`` (named by its stem) or ``PATH@F``,
     the robot over [0, F Hz] (``frf.f_max_hz`` F; named ``STEM_Fhz``); a relative PATH from
     ``root`` where given."""
-    path, at, band = entry.rpartition('@')
+    head, at, band = entry.rpartition('@')
     try:
         f_max_hz = float(band) if at else None
     except ValueError:
-        path, f_max_hz = entry, None
-    path = Path(path if at and f_max_hz is not None else entry)
+        f_max_hz = None
+    path = Path(head if f_max_hz is not None else entry)
     settings = load_settings(root / path if root is not None else path)
     if f_max_hz is None:
         return path.stem, settings
