@@ -22,6 +22,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -43,6 +44,8 @@ from cdpr_dynamics.analysis.pipeline import AnalysisError, build_system, equilib
 from cdpr_dynamics.analysis.config import load_settings
 from cdpr_dynamics.analysis.live import LivePredictor
 from cdpr_dynamics.recording.reader import recording_info
+from cdpr_dynamics.ros.node import nodes_named
+from cdpr_dynamics.ros.parameters import NODE_NAME
 from cdpr_dynamics.ros.process import (isolated_env, reserve_domain_id, rss_kib, start_node,
                                        stop_process)
 from msg_adapters.diagnostics import ERROR, OK, WARN, read_statuses
@@ -868,6 +871,33 @@ def test_two_nodes_of_one_name_both_warn_and_a_refusing_newcomer_ends(ros, tmp_p
         if second is not None:
             stop_process(second)
         assert first.close() == 0
+
+
+def test_a_namesake_is_counted_by_its_publishers_not_by_the_node_list(ros):
+    """nodes_named: a node of the name counts once it publishes on /rosout or /parameter_events
+    (one without /rosout too); another namespace does not count; and an entry in the node list
+    without publishers (a node that has left, kept there by DDS) does not count."""
+    with reserve_domain_id(1, 140) as reservation:
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=reservation.domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            watcher = Node('watcher', context=context)
+            nodes = [Node(NODE_NAME, context=context),
+                     Node(NODE_NAME, namespace='/elsewhere', context=context)]
+            wait_until(lambda: nodes_named(watcher, NODE_NAME, '/elsewhere') == 1, 10,
+                       'the watcher to see its nodes')
+            assert nodes_named(watcher, NODE_NAME, '/') == 1
+            nodes.append(Node(NODE_NAME, context=context, enable_rosout=False))
+            wait_until(lambda: nodes_named(watcher, NODE_NAME, '/') == 2, 10,
+                       'the namesake without /rosout to count')
+        finally:
+            rclpy.try_shutdown(context=context)
+
+    alive = SimpleNamespace(node_name=NODE_NAME, node_namespace='/')
+    ghost = SimpleNamespace(get_node_names_and_namespaces=lambda: [(NODE_NAME, '/')] * 2,
+                            get_publishers_info_by_topic=lambda topic: [alive])
+    assert nodes_named(ghost, NODE_NAME, '/') == 1
 
 
 def test_flood_of_wrenches(ros):

@@ -70,6 +70,8 @@ CHANGE_PERIOD_S = 0.1
 NAME_CHECK_S = 1.0         # the graph is searched for a namesake this often
 NAME_WINDOW_S = 10.0       # a namesake found within this long of the start: this node is
 #                            the newcomer (discovery takes seconds on a loaded machine)
+NAME_TOPICS = ('/rosout', '/parameter_events')  # a node is counted by its publishers here (every
+#                            rclpy and rclcpp node has them unless told otherwise)
 OUTPUT_DEPTH = 1000      # predictions kept for a reliable subscriber that lags: 1 s at 1 kHz
 #                          (a depth of 10 drops what a subscriber busy for 10 ms has not taken)
 MARKERS_PERIOD_S = 0.5    # markers of a new equilibrium at most this often (milliseconds each)
@@ -82,6 +84,16 @@ MODES_DUTY = 0.1          # and at most this share of a core: a refresh that too
 #                           heavy-sag 6-DOF robot at fem_sag 16) waits 5 s for the next
 INLINE_MODES_S = 0.002    # modes that took at most this are computed in the pose's callback
 #                           (no worker round trip: vibration_modes within ms of the pose)
+
+
+def nodes_named(node: Node, name: str, namespace: str) -> int:
+    """How many live nodes the graph seen by ``node`` holds with this name and namespace: their
+    publishers on whichever of NAME_TOPICS has more of them. Not the graph's node list: beside
+    busy cores Fast DDS can keep a node that has left in a peer's node list for good (a fresh
+    participant no longer lists it), while its endpoints leave the graph with its participant."""
+    return max(sum(1 for info in node.get_publishers_info_by_topic(topic)
+                   if (info.node_name, info.node_namespace) == (name, namespace))
+               for topic in NAME_TOPICS)
 
 
 def _locked(method):
@@ -278,9 +290,7 @@ class DynamicsNode(Node):
         """Every NAME_CHECK_S: another node of this name and namespace in the graph is a
         warning (on both nodes, cleared when it leaves); a newcomer (this node found it within
         NAME_WINDOW_S of its start) with ``node.unique_name: refuse`` ends instead."""
-        name, namespace = self.get_name(), self.get_namespace()
-        same = sum(1 for n, ns in self.get_node_names_and_namespaces()
-                   if (n, ns) == (name, namespace))
+        same = nodes_named(self, self.get_name(), self.get_namespace())
         if (same >= 2) == bool(self._name_warnings):
             return
         self.diag_dirty = True
