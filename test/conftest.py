@@ -164,3 +164,9 @@ def wait_until(condition, timeout: float, what: str, period: float = 0.05):
         if time.monotonic() > deadline:
             raise AssertionError(f'timed out after {timeout} s waiting for {what}')
         time.sleep(period)
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (s), from /proc/<pid>/stat."""
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')

@@ -39,6 +39,7 @@ from msg_adapters.pose import pose_message
 from msg_adapters.stamps import StampPolicy, handle_in_stamp_order
 from msg_adapters.validation import InvalidMessage, check_frame, ns_to_stamp
 from msg_adapters.wrench import wrench_message
+from conftest import cpu_seconds
 from test_feasibility import _many_cables as many_cable_robot
 
 pytestmark = pytest.mark.ros   # nodes, DDS, worker processes, signals
@@ -500,12 +501,6 @@ def frf_call(node, names, timeout_s=60.0):
     from rcl_interfaces.srv import GetParameters
     assert wait_for_frequency_response(node, timeout_s, spin=False)
     return frequency_response_client(node).call_async(GetParameters.Request(names=list(names)))
-
-
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (s), from /proc/<pid>/stat."""
-    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 def process_alive(pid: int) -> bool:

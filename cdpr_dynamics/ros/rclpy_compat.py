@@ -53,7 +53,9 @@ class InputLoop:
 
     :meth:`spin` returns to Python at least every ``LOOP_WAIT_S`` (a signal is handled there)
     and ends when the context shuts down or ``stop()`` says so (checked every turn); an
-    exception from a callback ends it (as the executor's ``spin`` does). ``AttributeError``
+    exception from a callback ends it (as the executor's ``spin`` does). A turn whose wait
+    timed out tries to take from each subscription all the same, so that a wake-up the
+    middleware lost leaves no message waiting for the next one. ``AttributeError``
     from the constructor: this rclpy lacks the wait set API (use the executor).
 
     ``stop`` is how a signal ends the loop even where the exception its handler raises is
@@ -88,7 +90,7 @@ class InputLoop:
                 wait_set.wait(timeout_ns)
                 ready = wait_set.get_ready_entities('subscription')
                 for handle, pointer, msg_type, raw, callback in turn:
-                    if pointer in ready:
+                    if pointer in ready or not ready:   # a turn that timed out tries each
                         taken = handle.take_message(msg_type, raw)
                         if taken is not None:
                             callback(taken[0])
