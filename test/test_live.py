@@ -337,9 +337,12 @@ def test_a_run_of_wrenches_advances_as_each_wrench_alone(method, elements, slack
         assert 10 < len(stops) < stamps.size / 4   # for it, but most wrenches went in runs
     disp, position, quaternion = run.predictions(q_run[-5:], (0.0, 0.0, 0.0))
     single = run.prediction()
-    assert np.array_equal(disp[-1], single.displacement_m)
-    assert np.array_equal(position[-1], single.position_m)
-    assert np.array_equal(quaternion[-1], single.quaternion)
+    for got, expected in ((disp[-1], single.displacement_m), (position[-1], single.position_m),
+                          (quaternion[-1], single.quaternion)):
+        if modal:     # the run's last row and the state it leaves: two products, one number
+            assert np.abs(got - expected).max() <= 1e-12 * np.abs(expected).max()
+        else:
+            assert np.array_equal(got, expected)
 
 
 @pytest.mark.parametrize('method, elements', [('spring', 1), ('fem', 4)])

@@ -1025,7 +1025,10 @@ def test_slack_aware_replay_gives_the_analyze_numbers(tmp_path):
     expected = harmonic_history(settings, 5.0, steps * dt_ns * 1e-9)
     assert expected.slack.any()
     peak = np.abs(expected.u).max()
-    assert np.abs(replayed - expected.u[:, :3]).max() <= 1e-12 * peak
+    # two orders of the same arithmetic (the replay's runs, the history's steps) through slack
+    # switches: their round-off depends on the CPU's vector kernels (4.5e-12 of the peak on
+    # an AMD EPYC)
+    assert np.abs(replayed - expected.u[:, :3]).max() <= 1e-10 * peak
     linear = harmonic_history(settings, 5.0, steps * dt_ns * 1e-9, slack='linear')
     assert np.abs(replayed - linear.u[:, :3]).max() > 0.1 * peak
 
